@@ -1,0 +1,5 @@
+import sys
+
+from minority.cli import main
+
+sys.exit(main())

@@ -1,0 +1,105 @@
+"""Zenoh key expressions of ARCHITECTURE.md, in one place.
+
+    minority/{run}/spec                 queryable served by the render server (updates are put)
+    minority/{run}/chunk/{step}/{rank}  a particle chunk
+    minority/{run}/rank/{rank}          liveliness token of a live rank
+    minority/{run}/frame/{view}         a rendered frame
+    minority/{run}/timing               timing records
+    minority/{run}/event                lifecycle events
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from protocol import check
+
+ROOT = "minority"
+ALL_RUNS = "*"
+
+
+class Topic:
+    """The kind segment of a key; MCAP topics drop the step/rank suffixes."""
+
+    SPEC = "spec"
+    CHUNK = "chunk"
+    RANK = "rank"
+    FRAME = "frame"
+    TIMING = "timing"
+    EVENT = "event"
+
+
+def _run(run: str) -> str:
+    return run if run == ALL_RUNS else check.name(run, "run")
+
+
+def spec(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.SPEC}"
+
+
+def chunk(run: str, step: int, rank: int) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.CHUNK}/{step}/{rank}"
+
+
+def chunks(run: str) -> str:
+    """Every chunk of a run."""
+    return f"{ROOT}/{_run(run)}/{Topic.CHUNK}/**"
+
+
+def rank_token(run: str, rank: int) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.RANK}/{rank}"
+
+
+def rank_tokens(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.RANK}/*"
+
+
+def frame(run: str, view: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.FRAME}/{check.name(view, 'view')}"
+
+
+def frames(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.FRAME}/*"
+
+
+def timing(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.TIMING}"
+
+
+def event(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.EVENT}"
+
+
+def everything(run: str = ALL_RUNS) -> str:
+    """All messages of one run, or of every run."""
+    return f"{ROOT}/{_run(run)}/**"
+
+
+@dataclass(frozen=True)
+class ParsedKey:
+    run: str
+    topic: str  # one of Topic
+    rest: tuple[str, ...]  # step/rank for chunks, rank for tokens, view for frames
+
+    @property
+    def log_topic(self) -> str:
+        """MCAP topic: per view for frames, per kind otherwise (step/rank live in the payload)."""
+        base = f"{ROOT}/{self.run}/{self.topic}"
+        return f"{base}/{self.rest[0]}" if self.topic == Topic.FRAME else base
+
+
+_ARITY = {Topic.SPEC: 0, Topic.CHUNK: 2, Topic.RANK: 1, Topic.FRAME: 1, Topic.TIMING: 0,
+          Topic.EVENT: 0}
+
+
+def parse(key: str) -> ParsedKey | None:
+    """Split a concrete key; None when it is not one of ours."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[0] != ROOT or parts[2] not in _ARITY:
+        return None
+    if not check.NAME_RE.match(parts[1]) or len(parts) != 3 + _ARITY[parts[2]]:
+        return None
+    rest = tuple(parts[3:])
+    if not all(check.NAME_RE.match(p) for p in rest):
+        return None
+    return ParsedKey(parts[1], parts[2], rest)

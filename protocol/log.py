@@ -1,0 +1,271 @@
+"""MCAP logging: a writer usable in any process, the `minority record` recorder, a reader.
+
+Topics are per run and kind (`minority/{run}/chunk`, `.../frame/{view}`, `.../timing`, ...);
+step and rank live in each chunk's payload. Chunks are stored byte-for-byte as received
+(message encoding `minority-wire-v1`); spec, frame, timing and event are stored as JSON
+with a JSON Schema (frames as `foxglove.CompressedImage`, so MCAP viewers show the image).
+Malformed messages go to `minority/_rejected` with the reason, never to a data topic.
+log_time is the arrival time and publish_time the sender's stamp, both ns since the epoch.
+The writer closes an MCAP chunk at least every `flush_interval_s`, so a recorder killed
+with SIGKILL leaves a file whose completed chunks the reader still returns.
+"""
+
+from __future__ import annotations
+
+import base64
+import fnmatch
+import json
+import struct
+import threading
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from protocol import keys
+from protocol.errors import ProtocolError
+from protocol.messages import Chunk, Event, Frame, Timing, decode_as
+from protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
+from protocol.session import Inbox
+from protocol.spec import Spec
+from protocol.wire import decode
+
+PROFILE = "minority"
+REJECTED_TOPIC = f"{keys.ROOT}/_rejected"
+JSON_ENCODING = "json"
+_BY_TOPIC = {keys.Topic.CHUNK: Chunk, keys.Topic.SPEC: Spec, keys.Topic.FRAME: Frame,
+             keys.Topic.TIMING: Timing, keys.Topic.EVENT: Event}
+_BY_SCHEMA = {"minority.Chunk": Chunk, "minority.Spec": Spec, "foxglove.CompressedImage": Frame,
+              "minority.Timing": Timing, "minority.Event": Event}
+
+
+class LogWriter:
+    """Writes messages to an MCAP file with schemas and channel metadata."""
+
+    def __init__(self, path: str | Path, *, compression: CompressionType = CompressionType.NONE,
+                 flush_interval_s: float = 0.5, chunk_bytes: int = 4 << 20,
+                 metadata: dict[str, str] | None = None):
+        self.path = Path(path)
+        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=compression)
+        self._writer.start(profile=PROFILE, library="minority")
+        self._writer.add_metadata("minority", {"wire_format": WIRE_ENCODING,
+                                               "created_ns": str(time.time_ns()),
+                                               **(metadata or {})})
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+        self._lock = threading.Lock()
+        self.written = 0
+        self.rejected = 0
+
+    def _channel(self, topic: str, schema_name: str, encoding: str, meta: dict[str, str]) -> int:
+        if topic not in self._channels:
+            if schema_name not in self._schemas:
+                if schema_name == "minority.Chunk":
+                    self._schemas[schema_name] = self._writer.register_schema(
+                        schema_name, WIRE_ENCODING, WIRE_SCHEMA.encode())
+                else:
+                    self._schemas[schema_name] = self._writer.register_schema(
+                        schema_name, "jsonschema", json.dumps(JSON_SCHEMAS[schema_name]).encode())
+            self._channels[topic] = self._writer.register_channel(
+                topic, encoding, self._schemas[schema_name], meta)
+        return self._channels[topic]
+
+    def write_payload(self, key: str, payload: bytes, log_ns: int | None = None) -> str:
+        """Validate and log one received payload; returns the topic it went to."""
+        log_ns = time.time_ns() if log_ns is None else log_ns
+        try:
+            topic, schema, encoding, data, sent_ns, meta = self._prepare(key, payload)
+        except ProtocolError as exc:
+            return self._reject(key, payload, str(exc), log_ns)
+        with self._lock:
+            self._writer.add_message(self._channel(topic, schema, encoding, meta), log_ns, data,
+                                     sent_ns)
+            self.written += 1
+            self._maybe_flush()
+        return topic
+
+    def write(self, message, key: str | None = None, log_ns: int | None = None) -> str:
+        """Log a message object (in-process use); `key` defaults to its canonical key."""
+        return self.write_payload(key or default_key(message), bytes(message.encode()), log_ns)
+
+    def _prepare(self, key: str, payload: bytes):
+        parsed = keys.parse(key)
+        if parsed is None or parsed.topic not in _BY_TOPIC:
+            raise ProtocolError(f"key {key!r:.120} is not a minority message key")
+        cls = _BY_TOPIC[parsed.topic]
+        message = decode_as(payload, cls)
+        if message.run != parsed.run:
+            raise ProtocolError(f"payload run {message.run!r} does not match key run {parsed.run!r}")
+        meta = {"run": parsed.run, "kind": parsed.topic, "key_expr": keys.everything(parsed.run)}
+        if cls is Chunk:
+            return parsed.log_topic, "minority.Chunk", WIRE_ENCODING, payload, message.sent_ns, meta
+        schema = "foxglove.CompressedImage" if cls is Frame else f"minority.{cls.__name__}"
+        data = json.dumps(message.to_json(), separators=(",", ":")).encode()
+        return parsed.log_topic, schema, JSON_ENCODING, data, message.sent_ns, meta
+
+    def _reject(self, key: str, payload: bytes, reason: str, log_ns: int) -> str:
+        sent_ns = 0
+        if len(payload) >= 32:
+            sent_ns = max(0, struct.unpack_from("<q", payload, 24)[0])
+        record = {"key": str(key)[:1024], "reason": reason, "bytes": len(payload),
+                  "payload_b64": base64.b64encode(payload).decode("ascii")}
+        with self._lock:
+            channel = self._channel(REJECTED_TOPIC, "minority.Rejected", JSON_ENCODING,
+                                    {"kind": "rejected"})
+            self._writer.add_message(channel, log_ns, json.dumps(record).encode(), sent_ns)
+            self.rejected += 1
+            self._maybe_flush()
+        return REJECTED_TOPIC
+
+    def _maybe_flush(self) -> None:
+        if time.monotonic() - self._last_flush >= self._flush_interval_s:
+            self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        self._writer.flush()
+        self._last_flush = time.monotonic()
+
+    def flush(self) -> None:
+        """Close the open MCAP chunk and push it to the OS."""
+        with self._lock:
+            self._flush_locked()
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._file.closed:
+                self._writer.finish()
+                self._file.close()
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def default_key(message) -> str:
+    if isinstance(message, Chunk):
+        return keys.chunk(message.run, message.step, message.rank)
+    if isinstance(message, Frame):
+        return keys.frame(message.run, message.view)
+    return {Spec: keys.spec, Timing: keys.timing, Event: keys.event}[type(message)](message.run)
+
+
+class Recorder:
+    """Subscribes to `minority/{run}/**` and writes every message to MCAP on its own thread.
+
+    Usable inside other processes (pass their session). Memory is bounded by `capacity`
+    queued messages; overflow is counted in `dropped`, never blocks zenoh.
+    """
+
+    def __init__(self, session: zenoh.Session, path: str | Path, run: str = keys.ALL_RUNS,
+                 capacity: int = 256, **writer_options):
+        self.writer = LogWriter(path, metadata={"run": run}, **writer_options)
+        self._inbox = Inbox(session, keys.everything(run), capacity)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="minority-recorder", daemon=True)
+        self._thread.start()
+
+    @property
+    def received(self) -> int:
+        return self._inbox.received
+
+    @property
+    def dropped(self) -> int:
+        return self._inbox.dropped
+
+    @property
+    def written(self) -> int:
+        return self.writer.written + self.writer.rejected
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            item = self._inbox.get(timeout=0.1)
+            if item is None:
+                self.writer.flush()
+                continue
+            self.writer.write_payload(item.key, item.payload, item.recv_ns)
+
+    def wait_for(self, count: int, timeout_s: float) -> bool:
+        """Wait until `count` messages are written (polls the counter; bounded by timeout)."""
+        deadline = time.monotonic() + timeout_s
+        while self.written < count:
+            if time.monotonic() > deadline:
+                return False
+            self._stop.wait(0.01)
+        return True
+
+    def close(self) -> None:
+        """Stop receiving, write what is queued, finish the file."""
+        self._inbox.close()
+        self._stop.set()
+        self._thread.join()
+        while (item := self._inbox.get(timeout=0)) is not None:
+            self.writer.write_payload(item.key, item.payload, item.recv_ns)
+        self.writer.close()
+
+
+@dataclass(frozen=True)
+class LogRecord:
+    topic: str
+    log_ns: int
+    publish_ns: int
+    schema: str
+    data: bytes  # as stored: wire payload for chunks, JSON for the rest
+
+    def decode(self):
+        """The message object (Chunk, Frame, Spec, Timing, Event)."""
+        cls = _BY_SCHEMA.get(self.schema)
+        if cls is None:
+            raise ProtocolError(f"topic {self.topic!r} has schema {self.schema!r}, not a message")
+        if cls is Chunk:
+            return Chunk.from_envelope(decode(self.data))
+        try:
+            obj = json.loads(self.data)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ProtocolError(f"{self.topic}: stored JSON is invalid ({exc})") from None
+        return cls.from_json(obj, self.publish_ns)
+
+
+def read_log(path: str | Path, topics: Iterable[str] | None = None,
+             start_ns: int | None = None, end_ns: int | None = None) -> Iterator[LogRecord]:
+    """Iterate stored messages in file order, filtered by topic (exact or glob, e.g.
+    `minority/*/chunk`) and log time in [start_ns, end_ns). A file cut short (a killed
+    recorder) yields every message of its completed chunks, then stops."""
+    patterns = list(topics) if topics is not None else None
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    wanted: dict[int, bool] = {}
+    with open(path, "rb") as f:
+        records = StreamReader(f).records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except (McapError, EOFError, struct.error, ValueError):
+                return  # truncated tail: what came before is complete
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+                wanted[record.id] = patterns is None or any(
+                    fnmatch.fnmatchcase(record.topic, p) for p in patterns)
+            elif isinstance(record, Message) and wanted.get(record.channel_id):
+                if start_ns is not None and record.log_time < start_ns:
+                    continue
+                if end_ns is not None and record.log_time >= end_ns:
+                    continue
+                channel = channels[record.channel_id]
+                schema = schemas.get(channel.schema_id)
+                yield LogRecord(channel.topic, record.log_time, record.publish_time,
+                                schema.name if schema else "", bytes(record.data))

@@ -1,0 +1,300 @@
+"""Message types on the wire: Chunk, Frame, Timing, Event (Spec lives in protocol.spec).
+
+Each type encodes to the envelope of `protocol.wire` and decodes with full validation;
+every failure is a `ProtocolError` naming the problem.
+"""
+
+from __future__ import annotations
+
+import base64
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import ClassVar
+
+import numpy as np
+
+from protocol import check
+from protocol.errors import ProtocolError
+from protocol.spec import Spec
+from protocol.wire import Envelope, MessageKind, decode, encode
+
+MAX_RANKS = 1 << 20
+MAX_IMAGE_SIDE = 8192  # px
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+POSITIONS = "positions"
+
+
+def _finite(name: str, array: np.ndarray) -> None:
+    """Raise unless every value of a floating array is finite (min/max propagate NaN/inf)."""
+    if array.size and array.dtype.kind == "f":
+        flat = array.reshape(-1)
+        lo, hi = flat.min(), flat.max()
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            bad = int(np.flatnonzero(~np.isfinite(flat))[0])
+            row = bad // (flat.size // array.shape[0]) if array.ndim > 1 else bad
+            raise ProtocolError(f"field {name!r} has a non-finite value at particle {row}")
+
+
+@dataclass
+class Chunk:
+    """One rank's particles at one step.
+
+    fields: name -> array with first dimension n; `positions` [n, 3] float32 (m) is required,
+    other fields are [n] or [n, k] (e.g. `displacement` [n, 3] float32 m).
+    """
+
+    KIND: ClassVar[MessageKind] = MessageKind.CHUNK
+
+    run: str
+    step: int
+    time_s: float  # simulated time, s
+    rank: int
+    ranks: int
+    spacing_m: float  # particle spacing; the render sphere radius is half of it by default
+    bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]]  # domain (lo, hi)
+    fields: dict[str, np.ndarray]
+    sent_ns: int = 0
+
+    @property
+    def count(self) -> int:
+        return int(self.fields[POSITIONS].shape[0])
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.fields[POSITIONS]
+
+    def meta(self) -> dict:
+        return {"run": self.run, "step": self.step, "time_s": self.time_s, "rank": self.rank,
+                "ranks": self.ranks, "count": self.count, "spacing_m": self.spacing_m,
+                "bounds_m": [list(self.bounds_m[0]), list(self.bounds_m[1])]}
+
+    def encode(self) -> bytearray:
+        pos = self.fields.get(POSITIONS)
+        if pos is None or pos.ndim != 2 or pos.shape[1] != 3:
+            raise ProtocolError("chunk needs a 'positions' field of shape [n, 3]")
+        fields = {POSITIONS: np.asarray(pos, dtype=np.float32)}
+        fields.update((k, v) for k, v in self.fields.items() if k != POSITIONS)
+        payload = encode(self.KIND, self.meta(), fields, self.sent_ns or None)
+        return payload
+
+    @classmethod
+    def from_envelope(cls, env: Envelope) -> Chunk:
+        m = check.keys(env.meta, "chunk", {"run", "step", "time_s", "rank", "ranks", "count",
+                                           "spacing_m", "bounds_m"})
+        ranks = check.integer(m["ranks"], "chunk.ranks", 1, MAX_RANKS)
+        count = check.integer(m["count"], "chunk.count", 0)
+        bounds = m["bounds_m"]
+        if not isinstance(bounds, list) or len(bounds) != 2:
+            raise ProtocolError("chunk.bounds_m: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+        lo = check.vector(bounds[0], "chunk.bounds_m[0]")
+        hi = check.vector(bounds[1], "chunk.bounds_m[1]")
+        if any(a > b for a, b in zip(lo, hi, strict=True)):
+            raise ProtocolError(f"chunk.bounds_m: lower corner {lo} exceeds upper corner {hi}")
+        pos = env.arrays.get(POSITIONS)
+        if pos is None:
+            raise ProtocolError("chunk has no 'positions' array")
+        if pos.dtype != np.float32 or pos.shape != (count, 3):
+            raise ProtocolError(f"chunk positions must be [{count}, 3] float32, "
+                                f"got {list(pos.shape)} {pos.dtype}")
+        for name, array in env.arrays.items():
+            if array.ndim not in (1, 2) or array.shape[0] != count:
+                raise ProtocolError(f"field {name!r} has shape {list(array.shape)}; "
+                                    f"expected [{count}] or [{count}, k]")
+            _finite(name, array)
+        return cls(run=check.name(m["run"], "chunk.run"),
+                   step=check.integer(m["step"], "chunk.step", 0),
+                   time_s=check.number(m["time_s"], "chunk.time_s", 0.0),
+                   rank=check.integer(m["rank"], "chunk.rank", 0, ranks - 1), ranks=ranks,
+                   spacing_m=check.number(m["spacing_m"], "chunk.spacing_m", 0.0),
+                   bounds_m=(lo, hi), fields=dict(env.arrays), sent_ns=env.sent_ns)
+
+
+@dataclass
+class Frame:
+    """A rendered image of one view at one step, PNG-encoded."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.FRAME
+
+    run: str
+    view: str
+    step: int
+    time_s: float  # simulated time, s
+    width: int  # px
+    height: int  # px
+    png: bytes
+    sent_ns: int = 0
+
+    def meta(self) -> dict:
+        return {"run": self.run, "view": self.view, "step": self.step, "time_s": self.time_s,
+                "width": self.width, "height": self.height, "format": "png"}
+
+    def encode(self) -> bytearray:
+        _check_png(self.png, self.width, self.height)
+        image = np.frombuffer(self.png, dtype=np.uint8)
+        return encode(self.KIND, self.meta(), {"png": image}, self.sent_ns or None)
+
+    @classmethod
+    def from_envelope(cls, env: Envelope) -> Frame:
+        m = check.keys(env.meta, "frame", {"run", "view", "step", "time_s", "width", "height",
+                                           "format"})
+        if m["format"] != "png":
+            raise ProtocolError(f"frame.format: only 'png' is supported, got {m['format']!r}")
+        image = env.arrays.get("png")
+        if image is None or set(env.arrays) != {"png"} or image.dtype != np.uint8 or image.ndim != 1:
+            raise ProtocolError("frame must carry exactly one uint8 array 'png'")
+        frame = cls(run=check.name(m["run"], "frame.run"), view=check.name(m["view"], "frame.view"),
+                    step=check.integer(m["step"], "frame.step", 0),
+                    time_s=check.number(m["time_s"], "frame.time_s", 0.0),
+                    width=check.integer(m["width"], "frame.width", 1, MAX_IMAGE_SIDE),
+                    height=check.integer(m["height"], "frame.height", 1, MAX_IMAGE_SIDE),
+                    png=image.tobytes(), sent_ns=env.sent_ns)
+        _check_png(frame.png, frame.width, frame.height)
+        return frame
+
+    def to_json(self) -> dict:
+        """foxglove.CompressedImage fields (so MCAP viewers show it) plus our metadata."""
+        sec, nsec = divmod(self.sent_ns, 1_000_000_000)
+        return {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": self.view,
+                "format": "png", "data": base64.b64encode(self.png).decode("ascii"),
+                **{k: v for k, v in self.meta().items() if k != "format"}}
+
+    @classmethod
+    def from_json(cls, obj: dict, sent_ns: int = 0) -> Frame:
+        try:
+            png = base64.b64decode(obj["data"], validate=True)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProtocolError(f"frame.data: not base64 PNG bytes ({exc})") from None
+        meta = {k: obj.get(k) for k in ("run", "view", "step", "time_s", "width", "height")}
+        meta["format"] = obj.get("format")
+        env = Envelope(MessageKind.FRAME, sent_ns, meta, {"png": np.frombuffer(png, np.uint8)})
+        return cls.from_envelope(env)
+
+
+def _check_png(png: bytes, width: int, height: int) -> None:
+    if len(png) < 24 or png[:8] != PNG_SIGNATURE or png[12:16] != b"IHDR":
+        raise ProtocolError("frame.png: not a PNG image (bad signature or IHDR)")
+    w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    if (w, h) != (width, height):
+        raise ProtocolError(f"frame.png is {w}x{h} px but the header says {width}x{height}")
+
+
+class _JsonMessage:
+    """A message whose whole content is its header meta (no arrays)."""
+
+    KIND: ClassVar[MessageKind]
+    sent_ns: int
+
+    def to_json(self) -> dict:
+        raise NotImplementedError
+
+    def encode(self) -> bytearray:
+        return encode(self.KIND, self.to_json(), None, self.sent_ns or None)
+
+    @classmethod
+    def from_json(cls, obj: dict, sent_ns: int = 0):
+        raise NotImplementedError
+
+    @classmethod
+    def from_envelope(cls, env: Envelope):
+        if env.arrays:
+            raise ProtocolError(f"{cls.__name__.lower()} must not carry arrays")
+        return cls.from_json(env.meta, env.sent_ns)
+
+
+TIMING_NUMBERS = ("time_s", "receive_s", "setup_s", "render_s")
+TIMING_COUNTS = ("bytes", "particles", "ranks_expected", "ranks_received")
+
+
+@dataclass
+class Timing(_JsonMessage):
+    """Per step and view: receive (first chunk to assembled), setup (repartition +
+    acceleration structures) and render wall times, s."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.TIMING
+
+    run: str
+    step: int
+    view: str
+    time_s: float = 0.0  # simulated time, s
+    receive_s: float = 0.0
+    setup_s: float = 0.0
+    render_s: float = 0.0
+    bytes: int = 0  # chunk bytes received for the step
+    particles: int = 0
+    ranks_expected: int = 0
+    ranks_received: int = 0
+    incomplete: bool = False
+    sent_ns: int = 0
+
+    def to_json(self) -> dict:
+        return {"run": self.run, "step": self.step, "view": self.view,
+                **{k: getattr(self, k) for k in TIMING_NUMBERS + TIMING_COUNTS},
+                "incomplete": self.incomplete}
+
+    @classmethod
+    def from_json(cls, obj: dict, sent_ns: int = 0) -> Timing:
+        m = check.keys(obj, "timing", {"run", "step", "view", "incomplete",
+                                       *TIMING_NUMBERS, *TIMING_COUNTS})
+        return cls(run=check.name(m["run"], "timing.run"),
+                   step=check.integer(m["step"], "timing.step", 0),
+                   view=check.name(m["view"], "timing.view"),
+                   **{k: check.number(m[k], f"timing.{k}", 0.0) for k in TIMING_NUMBERS},
+                   **{k: check.integer(m[k], f"timing.{k}", 0) for k in TIMING_COUNTS},
+                   incomplete=check.boolean(m["incomplete"], "timing.incomplete"),
+                   sent_ns=sent_ns)
+
+
+class EventKind(StrEnum):
+    RUN_START = "run_start"
+    RANK_DONE = "rank_done"
+    RUN_END = "run_end"
+    ERROR = "error"
+
+
+@dataclass
+class Event(_JsonMessage):
+    """Lifecycle: run start, rank done, run end, error. rank is -1 for the server."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.EVENT
+
+    run: str
+    kind: EventKind
+    rank: int = -1
+    message: str = ""
+    detail: dict = field(default_factory=dict)
+    sent_ns: int = 0
+
+    def to_json(self) -> dict:
+        return {"run": self.run, "event": str(self.kind), "rank": self.rank,
+                "message": self.message, "detail": self.detail}
+
+    @classmethod
+    def from_json(cls, obj: dict, sent_ns: int = 0) -> Event:
+        m = check.keys(obj, "event", {"run", "event", "rank", "message", "detail"})
+        try:
+            kind = EventKind(m["event"])
+        except ValueError:
+            raise ProtocolError(f"event.event: {m['event']!r:.40} is not one of "
+                                f"{[str(k) for k in EventKind]}") from None
+        if not isinstance(m["detail"], dict):
+            raise ProtocolError("event.detail: expected an object")
+        return cls(run=check.name(m["run"], "event.run"), kind=kind,
+                   rank=check.integer(m["rank"], "event.rank", -1, MAX_RANKS),
+                   message=check.text(m["message"], "event.message"), detail=m["detail"],
+                   sent_ns=sent_ns)
+
+
+def decode_message(payload):
+    """Decode any message type; raises ProtocolError on malformed input."""
+    env = decode(payload)
+    cls = {MessageKind.CHUNK: Chunk, MessageKind.FRAME: Frame, MessageKind.TIMING: Timing,
+           MessageKind.EVENT: Event, MessageKind.SPEC: Spec}[env.kind]
+    return cls.from_envelope(env)
+
+
+def decode_as(payload, cls):
+    """Decode and require a given message type."""
+    env = decode(payload)
+    if env.kind != cls.KIND:
+        raise ProtocolError(f"expected a {cls.KIND.name.lower()} message, got {env.kind.name.lower()}")
+    return cls.from_envelope(env)

@@ -1,0 +1,189 @@
+"""The one zenoh session factory every networked command uses, its shared CLI flags,
+and the explicit QoS of each message stream.
+
+Embedded default (one machine, no router to install): the render server is a peer that
+listens on tcp/127.0.0.1:7447; ranks, recorders and replays are clients that connect to
+it. Multicast scouting is off. Shared memory is on, with an implicit-SHM pool large enough
+for a 1M-particle chunk, so large puts between processes on one host skip the TCP copy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+
+import zenoh
+
+from protocol.wire import stamp_sent
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# 1M particles x (positions [n,3] f4 + 4 scalar f4 fields) = 28 MB; room for several in flight.
+SHM_POOL_BYTES = 256 * 1024 * 1024
+SHM_THRESHOLD_BYTES = 3072  # messages above this size go through shared memory on one host
+# Transmission queue: batches per priority (zenoh default 2). Data streams get deeper queues so
+# a burst of chunks from one step does not stall the sender; bounded, so memory stays bounded.
+TX_QUEUE_BATCHES = {"control": 2, "real_time": 2, "interactive_high": 4, "interactive_low": 4,
+                    "data_high": 8, "data": 16, "data_low": 8, "background": 2}
+DROP_WAIT_US = 1000  # with DROP congestion control, wait this long for room before dropping
+
+
+class Role(StrEnum):
+    SERVER = "server"  # a listening peer that routes for the clients
+    CLIENT = "client"  # connects to a server (ranks, recorder, replay)
+
+
+@dataclass
+class NetworkOptions:
+    """--connect / --listen / --config, shared by every networked command."""
+
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    config: Path | None = None
+    connect_timeout_s: float = 0.0  # clients: keep retrying for this long at start (0 = once)
+
+
+def add_network_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("network (zenoh)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help=f"endpoint to connect to, repeatable (clients default to {DEFAULT_ENDPOINT})")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help=f"endpoint to listen on, repeatable (the server defaults to {DEFAULT_ENDPOINT})")
+    g.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="zenoh JSON5 config file; it replaces the embedded default, and "
+                        "--connect/--listen still override its endpoints")
+
+
+def options_from_args(args: argparse.Namespace) -> NetworkOptions:
+    return NetworkOptions(connect=list(args.connect), listen=list(args.listen), config=args.config)
+
+
+def _put(cfg: zenoh.Config, key: str, value) -> None:
+    cfg.insert_json5(key, json.dumps(value))
+
+
+def make_config(opts: NetworkOptions, role: Role) -> zenoh.Config:
+    """The zenoh config for `role`: embedded default or the --config file, then the flags."""
+    if opts.config is not None:
+        cfg = zenoh.Config.from_file(str(opts.config))
+    else:
+        cfg = zenoh.Config()
+        _put(cfg, "mode", "peer" if role is Role.SERVER else "client")
+        _put(cfg, "scouting/multicast/enabled", False)
+        _put(cfg, "scouting/gossip/enabled", False)
+        _put(cfg, "transport/shared_memory/enabled", True)
+        _put(cfg, "transport/shared_memory/transport_optimization",
+             {"enabled": True, "pool_size": SHM_POOL_BYTES,
+              "message_size_threshold": SHM_THRESHOLD_BYTES})
+        _put(cfg, "transport/link/tx/queue/size", TX_QUEUE_BATCHES)
+        _put(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop", DROP_WAIT_US)
+        if role is Role.SERVER:
+            _put(cfg, "listen/endpoints", opts.listen or [DEFAULT_ENDPOINT])
+        else:
+            _put(cfg, "listen/endpoints", opts.listen)
+    if opts.listen:
+        _put(cfg, "listen/endpoints", opts.listen)
+    if opts.connect or (opts.config is None and role is Role.CLIENT):
+        _put(cfg, "connect/endpoints", opts.connect or [DEFAULT_ENDPOINT])
+    if role is Role.CLIENT and opts.connect_timeout_s > 0:
+        _put(cfg, "connect/timeout_ms", {"client": int(opts.connect_timeout_s * 1000)})
+        _put(cfg, "connect/retry", {"period_init_ms": 50, "period_max_ms": 500,
+                                    "period_increase_factor": 2})
+    return cfg
+
+
+def open_session(opts: NetworkOptions | None = None, role: Role = Role.CLIENT) -> zenoh.Session:
+    """Open a zenoh session; a client with no server to connect to raises zenoh.ZError."""
+    return zenoh.open(make_config(opts or NetworkOptions(), role))
+
+
+@dataclass(frozen=True)
+class QoS:
+    """Explicit publisher settings for one message stream."""
+
+    congestion: zenoh.CongestionControl
+    priority: zenoh.Priority
+    express: bool = False
+
+
+# Chunks never block the simulation: a full queue drops (counted by the sender).
+CHUNK_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA)
+# Frames are for watching; the newest matters, old ones may drop.
+FRAME_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW)
+# Spec, timing and lifecycle events are small and must arrive.
+CONTROL_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.INTERACTIVE_HIGH, express=True)
+# Tests and replays that need every chunk delivered.
+LOSSLESS_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
+
+
+class Publisher:
+    """A zenoh publisher with explicit QoS that stamps the sent time into each payload."""
+
+    def __init__(self, session: zenoh.Session, key: str, qos: QoS):
+        self.key = key
+        self._pub = session.declare_publisher(key, congestion_control=qos.congestion,
+                                              priority=qos.priority, express=qos.express)
+
+    def put(self, payload: bytearray) -> None:
+        stamp_sent(payload)
+        self._pub.put(payload)
+
+    @property
+    def matched(self) -> bool:
+        return bool(self._pub.matching_status.matching)
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+def put(session: zenoh.Session, key: str, payload: bytearray, qos: QoS) -> None:
+    """One-off publish with explicit QoS (for keys that vary, e.g. chunk/{step}/{rank})."""
+    stamp_sent(payload)
+    session.put(key, payload, congestion_control=qos.congestion, priority=qos.priority,
+                express=qos.express)
+
+
+@dataclass(frozen=True)
+class Received:
+    key: str
+    payload: bytes
+    recv_ns: int  # time.time_ns() at arrival
+
+
+class Inbox:
+    """A bounded queue of received samples; when full, new samples are dropped and counted.
+
+    The zenoh callback only copies the payload and enqueues, so a slow consumer never
+    stalls zenoh's threads and memory stays bounded by `capacity` messages.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, capacity: int = 256):
+        self.dropped = 0
+        self.received = 0
+        self._queue: queue.Queue[Received] = queue.Queue(maxsize=capacity)
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        item = Received(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        with self._lock:
+            self.received += 1
+            try:
+                self._queue.put_nowait(item)
+            except queue.Full:
+                self.dropped += 1
+
+    def get(self, timeout: float | None = None) -> Received | None:
+        """The next sample, or None after `timeout` seconds."""
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self._sub.undeclare()

@@ -1,0 +1,210 @@
+"""Versioned binary envelope shared by every message type.
+
+Layout (all little-endian), version 1::
+
+    offset  size  field
+    0       4     magic b"MNRT"
+    4       1     format version (1)
+    5       1     message kind (MessageKind)
+    6       2     reserved, 0
+    8       4     header length H, bytes
+    12      4     reserved, 0
+    16      8     total payload length, bytes
+    24      8     sent time, ns since the Unix epoch (stamped at publish)
+    32      H     header: UTF-8 JSON object {"meta": {...}, "arrays": [{"name", "dtype", "shape"}]}
+    ...           zero padding to a 64-byte boundary
+    ...           each array, raw little-endian C order, starting on a 64-byte boundary
+
+Array offsets are implied by the order and sizes in the header, so a decoder checks
+that every array fits and that the declared total equals the bytes received before it
+touches any array data. Arrays decode as read-only numpy views of the payload.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from protocol.errors import ProtocolError
+
+MAGIC = b"MNRT"
+FORMAT_VERSION = 1
+PREFIX = struct.Struct("<4sBBHIIQq")  # magic, version, kind, reserved, H, reserved, total, sent_ns
+PREFIX_SIZE = PREFIX.size  # 32 bytes
+SENT_NS_OFFSET = 24
+ALIGN = 64  # bytes; array starts are aligned for SIMD-friendly views
+MAX_HEADER_BYTES = 1 << 20
+MAX_ARRAYS = 64
+MAX_NDIM = 4
+MAX_PAYLOAD_BYTES = 1 << 36  # 64 GiB: anything larger is a corrupt length field
+
+# Whitelist of array dtypes on the wire (numpy little-endian type strings).
+DTYPES = {
+    "<f4": np.dtype("<f4"),
+    "<f8": np.dtype("<f8"),
+    "<i4": np.dtype("<i4"),
+    "<i8": np.dtype("<i8"),
+    "<u4": np.dtype("<u4"),
+    "<u8": np.dtype("<u8"),
+    "<i2": np.dtype("<i2"),
+    "<u2": np.dtype("<u2"),
+    "|i1": np.dtype("i1"),
+    "|u1": np.dtype("u1"),
+}
+
+
+class MessageKind(IntEnum):
+    CHUNK = 1
+    SPEC = 2
+    FRAME = 3
+    TIMING = 4
+    EVENT = 5
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """A decoded envelope: kind, sender's time, header meta and array views."""
+
+    kind: MessageKind
+    sent_ns: int
+    meta: dict
+    arrays: dict[str, np.ndarray]
+
+
+def _aligned(offset: int) -> int:
+    return (offset + ALIGN - 1) // ALIGN * ALIGN
+
+
+def wire_dtype(array: np.ndarray) -> str:
+    """The wire type string of `array`'s dtype, little-endian; raises if not allowed."""
+    dt = array.dtype.newbyteorder("<") if array.dtype.byteorder == ">" else array.dtype
+    key = dt.str if dt.itemsize > 1 else "|" + dt.str[1:]
+    if key not in DTYPES:
+        raise ProtocolError(f"array dtype {array.dtype} is not one of {sorted(DTYPES)}")
+    return key
+
+
+def encode(kind: MessageKind, meta: dict, arrays: dict[str, np.ndarray] | None = None,
+           sent_ns: int | None = None) -> bytearray:
+    """Encode one message; arrays are copied once, into the returned buffer."""
+    arrays = arrays or {}
+    if len(arrays) > MAX_ARRAYS:
+        raise ProtocolError(f"{len(arrays)} arrays, at most {MAX_ARRAYS} allowed")
+    descs, parts = [], []
+    for name, array in arrays.items():
+        a = np.asarray(array)
+        dt = wire_dtype(a)
+        descs.append({"name": name, "dtype": dt, "shape": list(a.shape)})
+        parts.append(np.ascontiguousarray(a, dtype=DTYPES[dt]))
+    try:
+        header = json.dumps({"meta": meta, "arrays": descs}, allow_nan=False,
+                            separators=(",", ":")).encode()
+    except ValueError as exc:
+        raise ProtocolError(f"header is not finite JSON: {exc}") from exc
+    if len(header) > MAX_HEADER_BYTES:
+        raise ProtocolError(f"header is {len(header)} bytes, at most {MAX_HEADER_BYTES}")
+    offsets, end = [], PREFIX_SIZE + len(header)
+    for part in parts:
+        start = _aligned(end)
+        offsets.append(start)
+        end = start + part.nbytes
+    total = end
+    out = bytearray(total)
+    stamp = time.time_ns() if sent_ns is None else sent_ns
+    PREFIX.pack_into(out, 0, MAGIC, FORMAT_VERSION, int(kind), 0, len(header), 0, total, stamp)
+    out[PREFIX_SIZE:PREFIX_SIZE + len(header)] = header
+    for start, part in zip(offsets, parts, strict=True):
+        out[start:start + part.nbytes] = memoryview(part).cast("B")
+    return out
+
+
+def stamp_sent(payload: bytearray, sent_ns: int | None = None) -> None:
+    """Overwrite the sent time of an encoded payload in place (at publish)."""
+    struct.pack_into("<q", payload, SENT_NS_OFFSET, time.time_ns() if sent_ns is None else sent_ns)
+
+
+def peek_kind(payload) -> MessageKind:
+    """The message kind of a payload after checking only its prefix."""
+    return _prefix(memoryview(payload))[0]
+
+
+def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
+    if len(view) < PREFIX_SIZE:
+        raise ProtocolError(f"payload is {len(view)} bytes, shorter than the {PREFIX_SIZE}-byte prefix")
+    magic, version, kind, res1, hlen, res2, total, sent_ns = PREFIX.unpack_from(view, 0)
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != FORMAT_VERSION:
+        raise ProtocolError(f"format version {version} is not supported (this build reads {FORMAT_VERSION})")
+    try:
+        kind = MessageKind(kind)
+    except ValueError:
+        raise ProtocolError(f"unknown message kind {kind}") from None
+    if res1 or res2:
+        raise ProtocolError("reserved prefix fields are not zero")
+    if total != len(view):
+        raise ProtocolError(f"declared length {total} bytes but {len(view)} bytes received")
+    if hlen > MAX_HEADER_BYTES or PREFIX_SIZE + hlen > len(view):
+        raise ProtocolError(f"header length {hlen} does not fit in {len(view)} bytes")
+    return kind, hlen, total, sent_ns
+
+
+def _shape(desc: dict, index: int) -> tuple[str, np.dtype, tuple[int, ...]]:
+    if not isinstance(desc, dict) or set(desc) != {"name", "dtype", "shape"}:
+        raise ProtocolError(f"array descriptor {index} must have exactly name, dtype, shape")
+    name, dt, shape = desc["name"], desc["dtype"], desc["shape"]
+    if not isinstance(name, str) or not 0 < len(name) <= 64:
+        raise ProtocolError(f"array {index}: name must be a string of 1-64 characters")
+    if dt not in DTYPES:
+        raise ProtocolError(f"array {name!r}: dtype {dt!r} is not one of {sorted(DTYPES)}")
+    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
+            or not all(type(s) is int and 0 <= s < MAX_PAYLOAD_BYTES for s in shape)):
+        raise ProtocolError(f"array {name!r}: shape {shape!r} must be up to {MAX_NDIM} non-negative ints")
+    return name, DTYPES[dt], tuple(shape)
+
+
+def decode(payload) -> Envelope:
+    """Validate and decode an envelope. Arrays are views of `payload` (no copy).
+
+    Raises ProtocolError naming the problem; nothing large is allocated before the
+    declared sizes have been checked against the bytes received.
+    """
+    try:
+        view = memoryview(payload).cast("B")
+    except TypeError as exc:
+        raise ProtocolError(f"payload is not a bytes-like object: {exc}") from None
+    kind, hlen, total, sent_ns = _prefix(view)
+    try:
+        header = json.loads(bytes(view[PREFIX_SIZE:PREFIX_SIZE + hlen]))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ProtocolError(f"header is not valid JSON: {str(exc)[:80]}") from None
+    if not isinstance(header, dict) or set(header) != {"meta", "arrays"}:
+        raise ProtocolError("header must be an object with exactly 'meta' and 'arrays'")
+    meta, descs = header["meta"], header["arrays"]
+    if not isinstance(meta, dict) or not isinstance(descs, list):
+        raise ProtocolError("header 'meta' must be an object and 'arrays' a list")
+    if len(descs) > MAX_ARRAYS:
+        raise ProtocolError(f"{len(descs)} arrays, at most {MAX_ARRAYS} allowed")
+    arrays: dict[str, np.ndarray] = {}
+    end = PREFIX_SIZE + hlen
+    for i, desc in enumerate(descs):
+        name, dt, shape = _shape(desc, i)
+        if name in arrays:
+            raise ProtocolError(f"array {name!r} appears twice")
+        nbytes = math.prod(shape) * dt.itemsize
+        start = _aligned(end)
+        if start + nbytes > total:
+            raise ProtocolError(f"array {name!r} ({nbytes} bytes at {start}) runs past the "
+                                f"end of the {total}-byte payload")
+        arrays[name] = np.frombuffer(view, dtype=dt, count=math.prod(shape),
+                                     offset=start).reshape(shape)
+        end = start + nbytes
+    if end != total:
+        raise ProtocolError(f"arrays end at byte {end} but the payload is {total} bytes")
+    return Envelope(kind, sent_ns, meta, arrays)

@@ -120,7 +120,8 @@ def encode(kind: MessageKind, meta: dict, arrays: dict[str, np.ndarray] | None =
     PREFIX.pack_into(out, 0, MAGIC, FORMAT_VERSION, int(kind), 0, len(header), 0, total, stamp)
     out[PREFIX_SIZE:PREFIX_SIZE + len(header)] = header
     for start, part in zip(offsets, parts, strict=True):
-        out[start:start + part.nbytes] = memoryview(part).cast("B")
+        if part.nbytes:
+            out[start:start + part.nbytes] = memoryview(part.reshape(-1)).cast("B")
     return out
 
 
@@ -161,11 +162,11 @@ def _shape(desc: dict, index: int) -> tuple[str, np.dtype, tuple[int, ...]]:
     name, dt, shape = desc["name"], desc["dtype"], desc["shape"]
     if not isinstance(name, str) or not 0 < len(name) <= 64:
         raise ProtocolError(f"array {index}: name must be a string of 1-64 characters")
-    if dt not in DTYPES:
-        raise ProtocolError(f"array {name!r}: dtype {dt!r} is not one of {sorted(DTYPES)}")
+    if not isinstance(dt, str) or dt not in DTYPES:
+        raise ProtocolError(f"array {name!r}: dtype {dt!r:.40} is not one of {sorted(DTYPES)}")
     if (not isinstance(shape, list) or len(shape) > MAX_NDIM
             or not all(type(s) is int and 0 <= s < MAX_PAYLOAD_BYTES for s in shape)):
-        raise ProtocolError(f"array {name!r}: shape {shape!r} must be up to {MAX_NDIM} non-negative ints")
+        raise ProtocolError(f"array {name!r}: shape {shape!r:.60} must be up to {MAX_NDIM} non-negative ints")
     return name, DTYPES[dt], tuple(shape)
 
 
@@ -202,8 +203,11 @@ def decode(payload) -> Envelope:
         if start + nbytes > total:
             raise ProtocolError(f"array {name!r} ({nbytes} bytes at {start}) runs past the "
                                 f"end of the {total}-byte payload")
-        arrays[name] = np.frombuffer(view, dtype=dt, count=math.prod(shape),
-                                     offset=start).reshape(shape)
+        if nbytes:
+            arrays[name] = np.frombuffer(view, dtype=dt, count=math.prod(shape),
+                                         offset=start).reshape(shape)
+        else:
+            arrays[name] = np.empty(shape, dtype=dt)
         end = start + nbytes
     if end != total:
         raise ProtocolError(f"arrays end at byte {end} but the payload is {total} bytes")

@@ -1,0 +1,88 @@
+"""Shared fixtures: loopback zenoh sessions (127.0.0.1, multicast off) and sample messages."""
+
+from __future__ import annotations
+
+import socket
+import zlib
+
+import numpy as np
+import pytest
+
+from protocol import Chunk, Event, EventKind, Frame, Spec, Timing
+from protocol.session import NetworkOptions, Role, open_session
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def server(endpoint):
+    session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)
+    yield session
+    session.close()
+
+
+@pytest.fixture
+def client_factory(server, endpoint):
+    sessions = []
+
+    def make():
+        s = open_session(NetworkOptions(connect=[endpoint], connect_timeout_s=5.0), Role.CLIENT)
+        sessions.append(s)
+        return s
+
+    yield make
+    for s in sessions:
+        s.close()
+
+
+def make_chunk(n: int = 100, step: int = 20, rank: int = 0, ranks: int = 2, seed: int = 0,
+               run: str = "test-run") -> Chunk:
+    rng = np.random.default_rng(seed)
+    return Chunk(run=run, step=step, time_s=step * 1e-4, rank=rank, ranks=ranks, spacing_m=0.005,
+                 bounds_m=((0.0, 0.0, 0.0), (1.0, 0.5, 0.5)),
+                 fields={"positions": rng.random((n, 3), dtype=np.float32),
+                         "displacement": rng.random((n, 3), dtype=np.float32),
+                         "velocity_magnitude": rng.random(n, dtype=np.float32),
+                         "material": rng.integers(0, 3, n).astype(np.uint8)})
+
+
+def make_png(width: int = 4, height: int = 3) -> bytes:
+    """A tiny valid RGB PNG, built by hand (deterministic bytes)."""
+    def block(tag: bytes, data: bytes) -> bytes:
+        return (len(data).to_bytes(4, "big") + tag + data
+                + zlib.crc32(tag + data).to_bytes(4, "big"))
+    raw = b"".join(b"\x00" + bytes(range(y, y + 3 * width)) for y in range(height))
+    ihdr = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([8, 2, 0, 0, 0])
+    return (b"\x89PNG\r\n\x1a\n" + block(b"IHDR", ihdr) + block(b"IDAT", zlib.compress(raw, 9))
+            + block(b"IEND", b""))
+
+
+def make_spec(run: str = "test-run") -> Spec:
+    return Spec.from_dict({
+        "version": 1, "run": run,
+        "views": [{"name": "side", "camera": {"position": [0.5, -2.0, 0.2],
+                                              "focal_point": [0.5, 0.25, 0.1],
+                                              "view_up": [0, 0, 1], "view_angle_deg": 30},
+                   "width": 640, "height": 480, "range": [0.0, 0.38],
+                   "t_start_s": 0.0, "t_end_s": 0.15, "every_steps": 20},
+                  {"name": "top", "camera": {"position": [0.5, 0.25, 3.0],
+                                             "focal_point": [0.5, 0.25, 0.0],
+                                             "view_up": [0, 1, 0], "parallel_projection": True,
+                                             "parallel_scale_m": 0.4},
+                   "field": "velocity_magnitude", "range": [0.0, 2.0], "t_start_s": 0.15}]})
+
+
+def sample_messages() -> list:
+    return [make_chunk(), make_spec(),
+            Frame("test-run", "side", 40, 0.004, 4, 3, make_png()),
+            Timing("test-run", 40, "side", 0.004, 0.01, 0.002, 0.03, 4096, 100, 2, 2, False),
+            Event("test-run", EventKind.RANK_DONE, 1, "rank 1 done", {"dropped": 0})]

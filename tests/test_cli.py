@@ -1,0 +1,50 @@
+"""The `minority` command: help at every level, unbuilt subcommands say so and exit 2."""
+
+import subprocess
+import sys
+
+import pytest
+
+from minority.cli import NOT_BUILT, build_parser, main
+
+SUBCOMMANDS = ["serve", "sim", "oracle", "replay", "report", "record", "demo"]
+
+
+def test_top_level_help_lists_every_subcommand(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in SUBCOMMANDS)
+
+
+@pytest.mark.parametrize("name", SUBCOMMANDS)
+def test_subcommand_help(name, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([name, "--help"])
+    assert exc.value.code == 0
+    assert "usage: minority " + name in capsys.readouterr().out
+
+
+def test_network_flags_are_shared():
+    parser = build_parser()
+    for name, extra in [("serve", []), ("record", []), ("replay", ["x.mcap"]), ("sim", ["s.toml"])]:
+        args = parser.parse_args([name, *extra, "--connect", "tcp/127.0.0.1:1", "--listen",
+                                  "tcp/127.0.0.1:2", "--config", "z.json5"])
+        assert args.connect == ["tcp/127.0.0.1:1"] and args.listen == ["tcp/127.0.0.1:2"]
+        assert str(args.config) == "z.json5"
+
+
+@pytest.mark.parametrize("argv", [["serve"], ["oracle"], ["report", "x.mcap"], ["demo"]])
+def test_unbuilt_subcommand_says_so(argv, capsys):
+    assert main(argv) == NOT_BUILT
+    err = capsys.readouterr().err
+    assert err.strip() == f"minority {argv[0]}: not built yet"
+
+
+def test_record_without_server_fails_clearly(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "minority", "record", "--connect",
+                           "tcp/127.0.0.1:9", "--wait", "0", "-o", str(tmp_path / "x.mcap")],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "cannot reach a zenoh peer at tcp/127.0.0.1:9" in proc.stderr

@@ -1,0 +1,112 @@
+"""MCAP log: schemas, byte-identical chunks, JSON frames/timing, rejects, truncated files."""
+
+import json
+import os
+
+import pytest
+from conftest import make_chunk, sample_messages
+from mcap.reader import make_reader
+
+from protocol import Chunk, Frame, Timing
+from protocol.log import REJECTED_TOPIC, LogWriter, read_log
+
+
+def write_samples(path, **options):
+    messages = sample_messages()
+    with LogWriter(path, **options) as log:
+        for i, m in enumerate(messages):
+            log.write(m, log_ns=1_000 + i)
+    return messages
+
+
+def test_every_type_round_trips(tmp_path):
+    path = tmp_path / "run.mcap"
+    messages = write_samples(path)
+    records = list(read_log(path))
+    assert [r.topic for r in records] == ["minority/test-run/chunk", "minority/test-run/spec",
+                                          "minority/test-run/frame/side", "minority/test-run/timing",
+                                          "minority/test-run/event"]
+    assert [r.log_ns for r in records] == [1000, 1001, 1002, 1003, 1004]
+    for message, record in zip(messages, records, strict=True):
+        back = record.decode()
+        assert type(back) is type(message)
+        if isinstance(message, Chunk):
+            assert back.meta() == message.meta()
+            assert bytes(back.encode()) == record.data  # stored as sent
+        elif isinstance(message, Frame):
+            assert back.png == message.png and back.meta() == message.meta()
+        else:
+            assert json.dumps(back.to_json()) == json.dumps(message.to_json())
+
+
+def test_standard_reader_sees_schemas_and_metadata(tmp_path):
+    path = tmp_path / "run.mcap"
+    write_samples(path)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        schemas = {s.name: s.encoding for s in summary.schemas.values()}
+        assert schemas == {"minority.Chunk": "minority-wire-v1", "minority.Spec": "jsonschema",
+                           "foxglove.CompressedImage": "jsonschema", "minority.Timing": "jsonschema",
+                           "minority.Event": "jsonschema"}
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert channels["minority/test-run/timing"].message_encoding == "json"
+        assert channels["minority/test-run/chunk"].metadata["run"] == "test-run"
+        assert summary.statistics.message_count == 5
+    frame = next(r for r in read_log(path) if r.schema == "foxglove.CompressedImage")
+    obj = json.loads(frame.data)
+    assert obj["format"] == "png" and obj["frame_id"] == "side" and {"sec", "nsec"} <= obj["timestamp"].keys()
+
+
+def test_chunk_payload_stored_byte_for_byte(tmp_path):
+    payload = bytes(make_chunk(n=500).encode())
+    with LogWriter(tmp_path / "c.mcap") as log:
+        log.write_payload("minority/test-run/chunk/20/0", payload)
+    (record,) = read_log(tmp_path / "c.mcap")
+    assert record.data == payload
+
+
+@pytest.mark.parametrize("key,payload,reason", [
+    ("minority/test-run/chunk/20/0", b"garbage", "shorter than the 32-byte prefix"),
+    ("minority/test-run/frame/side", None, "expected a frame message, got chunk"),
+    ("minority/other-run/chunk/20/0", None, "does not match key run"),
+    ("elsewhere/x", None, "not a minority message key"),
+])
+def test_malformed_messages_are_rejected_not_lost(tmp_path, key, payload, reason):
+    good = bytes(make_chunk().encode())
+    path = tmp_path / "r.mcap"
+    with LogWriter(path) as log:
+        log.write_payload(key, good if payload is None else payload)
+        log.write_payload("minority/test-run/chunk/20/0", good)
+        assert log.rejected == 1 and log.written == 1
+    rejected, kept = list(read_log(path, [REJECTED_TOPIC])), list(read_log(path, ["*/chunk"]))
+    assert len(rejected) == 1 and len(kept) == 1 and kept[0].data == good
+    body = json.loads(rejected[0].data)
+    assert reason in body["reason"] and body["key"] == key
+
+
+def test_topic_and_time_filters(tmp_path):
+    path = tmp_path / "run.mcap"
+    write_samples(path)
+    assert [r.topic for r in read_log(path, ["minority/*/timing"])] == ["minority/test-run/timing"]
+    assert [r.log_ns for r in read_log(path, start_ns=1001, end_ns=1003)] == [1001, 1002]
+    assert isinstance(next(read_log(path, ["*/timing"])).decode(), Timing)
+
+
+def test_truncated_log_yields_its_complete_chunks(tmp_path):
+    path = tmp_path / "t.mcap"
+    payloads = [bytes(make_chunk(n=50, step=s).encode()) for s in range(10)]
+    log = LogWriter(path)
+    for step, payload in enumerate(payloads):
+        log.write_payload(f"minority/test-run/chunk/{step}/0", payload, log_ns=step)
+        log.flush()  # one MCAP chunk per message
+    size = os.path.getsize(path)  # no footer yet: as if the process had been killed
+    data = path.read_bytes()
+    counts = []
+    for cut in range(0, size + 1, max(1, size // 97)):
+        path.write_bytes(data[:cut])
+        records = list(read_log(path))
+        assert [r.data for r in records] == payloads[:len(records)]
+        counts.append(len(records))
+    assert counts == sorted(counts) and counts[-1] >= 9
+    log.close()

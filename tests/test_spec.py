@@ -1,0 +1,73 @@
+"""Spec validation names the bad field; files and wire round-trip."""
+
+import copy
+import math
+
+import pytest
+from conftest import make_spec
+
+from protocol import Spec, SpecError
+
+
+def base() -> dict:
+    return make_spec().to_dict()
+
+
+def with_change(path: str, value):
+    d = copy.deepcopy(base())
+    *parents, last = path.split(".")
+    node = d
+    for p in parents:
+        node = node[int(p)] if p.isdigit() else node[p]
+    if value is KeyError:
+        del node[last]
+    else:
+        node[last] = value
+    return d
+
+
+@pytest.mark.parametrize("path,value,message", [
+    ("version", 2, "version: spec version 2 is not supported"),
+    ("run", "a/b", "run: expected"),
+    ("views", [], "views: expected a non-empty list"),
+    ("views.0.name", "", r"views\[0\].name"),
+    ("views.1.name", "side", "view names must be unique"),
+    ("views.0.camera.position", [0, 0], r"views\[0\].camera.position: expected a list of 3"),
+    ("views.0.camera.focal_point", [0, float("nan"), 0], r"views\[0\].camera.focal_point\[1\]"),
+    ("views.0.camera.view_up", [0, 2.25, -0.1], r"views\[0\].camera.view_up: parallel"),
+    ("views.0.camera.position", [0.5, 0.25, 0.1], r"views\[0\].camera: position and focal_point"),
+    ("views.0.camera.view_angle_deg", 180, r"views\[0\].camera.view_angle_deg"),
+    ("views.1.camera.parallel_scale_m", 0, r"views\[1\].camera.parallel_scale_m"),
+    ("views.0.camera", KeyError, r"views\[0\]: missing camera"),
+    ("views.0.width", 0, r"views\[0\].width: 0 is outside"),
+    ("views.0.height", 10000, r"views\[0\].height"),
+    ("views.0.range", [1.0, 0.5], r"views\[0\].range: lower bound"),
+    ("views.0.background", [1, 1, 2], r"views\[0\].background"),
+    ("views.0.t_end_s", -1, r"views\[0\].t_end_s"),
+    ("views.0.every_steps", 0, r"views\[0\].every_steps"),
+    ("views.0.colour", "red", r"views\[0\]: unknown field\(s\) colour"),
+])
+def test_bad_spec_names_the_field(path, value, message):
+    with pytest.raises(SpecError, match=message):
+        Spec.from_dict(with_change(path, value))
+
+
+def test_file_and_wire_round_trip(tmp_path):
+    spec = make_spec()
+    spec.save(tmp_path / "spec.json")
+    assert Spec.load(tmp_path / "spec.json") == spec
+    assert math.isinf(spec.views[1].t_end_s)
+
+
+def test_bad_json_file(tmp_path):
+    (tmp_path / "s.json").write_text("{views: ")
+    with pytest.raises(SpecError, match="not valid JSON"):
+        Spec.load(tmp_path / "s.json")
+
+
+def test_schedule_and_fields():
+    spec = make_spec()
+    assert [v.name for v in spec.wants(20, 0.1)] == ["side"]
+    assert [v.name for v in spec.wants(21, 0.1)] == []
+    assert [v.name for v in spec.wants(40, 0.2)] == ["top"]
+    assert spec.fields == ("displacement", "velocity_magnitude")

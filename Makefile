@@ -26,7 +26,7 @@ test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
-	@for b in bench/*.py; do echo "# $$b" >&2; $(BIN)/python $$b || exit 1; done
+	@for b in bench/[a-z]*.py; do m=$$(basename $$b .py); echo "# bench.$$m" >&2; $(BIN)/python -m bench.$$m || exit 1; done
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -156,18 +156,23 @@ def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
     return kind, hlen, total, sent_ns
 
 
+_DESC_KEYS = {"name", "dtype", "shape"}
+
+
 def _shape(desc: dict, index: int) -> tuple[str, np.dtype, tuple[int, ...]]:
-    if not isinstance(desc, dict) or set(desc) != {"name", "dtype", "shape"}:
+    if type(desc) is not dict or desc.keys() != _DESC_KEYS:
         raise ProtocolError(f"array descriptor {index} must have exactly name, dtype, shape")
     name, dt, shape = desc["name"], desc["dtype"], desc["shape"]
-    if not isinstance(name, str) or not 0 < len(name) <= 64:
+    if type(name) is not str or not 0 < len(name) <= 64:
         raise ProtocolError(f"array {index}: name must be a string of 1-64 characters")
-    if not isinstance(dt, str) or dt not in DTYPES:
+    dtype = DTYPES.get(dt) if type(dt) is str else None
+    if dtype is None:
         raise ProtocolError(f"array {name!r}: dtype {dt!r:.40} is not one of {sorted(DTYPES)}")
-    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
+    if (type(shape) is not list or len(shape) > MAX_NDIM
             or not all(type(s) is int and 0 <= s < MAX_PAYLOAD_BYTES for s in shape)):
-        raise ProtocolError(f"array {name!r}: shape {shape!r:.60} must be up to {MAX_NDIM} non-negative ints")
-    return name, DTYPES[dt], tuple(shape)
+        raise ProtocolError(f"array {name!r}: shape {shape!r:.60} must be up to {MAX_NDIM} "
+                            "non-negative ints")
+    return name, dtype, tuple(shape)
 
 
 def decode(payload) -> Envelope:

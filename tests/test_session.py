@@ -1,0 +1,61 @@
+"""The session factory: embedded defaults, the shipped config files, explicit QoS."""
+
+import json
+from pathlib import Path
+
+import pytest
+import zenoh
+from conftest import free_port
+
+from protocol.session import (CHUNK_QOS, CONTROL_QOS, DEFAULT_ENDPOINT, SHM_POOL_BYTES, NetworkOptions,
+                              Role, make_config, open_session)
+
+DEPLOY = Path(__file__).parent.parent / "deploy"
+
+
+def get(cfg: zenoh.Config, key: str):
+    return json.loads(cfg.get_json(key))
+
+
+def test_embedded_server_defaults():
+    cfg = make_config(NetworkOptions(), Role.SERVER)
+    assert get(cfg, "mode") == "peer"
+    assert get(cfg, "listen/endpoints") == [DEFAULT_ENDPOINT]
+    assert get(cfg, "scouting/multicast/enabled") is False
+    shm = get(cfg, "transport/shared_memory")
+    assert shm["enabled"] and shm["transport_optimization"]["pool_size"] == SHM_POOL_BYTES
+    assert SHM_POOL_BYTES >= 2 * 1_000_000 * (12 + 4 * 4)  # two 1M-particle chunks with 4 fields
+
+
+def test_embedded_client_defaults_and_flags():
+    cfg = make_config(NetworkOptions(connect=["tcp/127.0.0.1:9999"]), Role.CLIENT)
+    assert get(cfg, "mode") == "client"
+    assert get(cfg, "connect/endpoints") == ["tcp/127.0.0.1:9999"]
+    assert get(make_config(NetworkOptions(), Role.CLIENT), "connect/endpoints") == [DEFAULT_ENDPOINT]
+
+
+@pytest.mark.parametrize("name,role", [("zenoh-server.json5", Role.SERVER),
+                                       ("zenoh-client.json5", Role.CLIENT)])
+def test_shipped_config_files_load(name, role):
+    cfg = make_config(NetworkOptions(config=DEPLOY / name), role)
+    assert get(cfg, "mode") == ("peer" if role is Role.SERVER else "client")
+    assert get(cfg, "scouting/multicast/enabled") is False
+
+
+def test_config_files_with_endpoint_overrides_connect():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server = open_session(NetworkOptions(config=DEPLOY / "zenoh-server.json5", listen=[endpoint]),
+                          Role.SERVER)
+    client = open_session(NetworkOptions(config=DEPLOY / "zenoh-client.json5", connect=[endpoint],
+                                         connect_timeout_s=5), Role.CLIENT)
+    try:
+        assert [str(z) for z in client.info.routers_zid() + client.info.peers_zid()] \
+            == [str(server.zid())]
+    finally:
+        client.close()
+        server.close()
+
+
+def test_qos_is_explicit():
+    assert CHUNK_QOS.congestion == zenoh.CongestionControl.DROP
+    assert CONTROL_QOS.congestion == zenoh.CongestionControl.BLOCK

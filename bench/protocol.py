@@ -32,7 +32,7 @@ from protocol.wire import SENT_NS_OFFSET, stamp_sent
 
 RUN = "bench"
 RAW_KEY = "bench/raw"
-SIZES = {13_000: 40, 100_000: 30, 1_000_000: 12}  # particles -> repetitions
+SIZES = {13_000: 200, 100_000: 60, 1_000_000: 15}  # particles -> repetitions
 
 
 def make_chunk(n: int) -> Chunk:

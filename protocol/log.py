@@ -34,7 +34,6 @@ from protocol.messages import Chunk, Event, Frame, Timing, decode_as
 from protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
 from protocol.session import Inbox
 from protocol.spec import Spec
-from protocol.wire import decode
 
 PROFILE = "minority"
 REJECTED_TOPIC = f"{keys.ROOT}/_rejected"
@@ -228,7 +227,7 @@ class LogRecord:
         if cls is None:
             raise ProtocolError(f"topic {self.topic!r} has schema {self.schema!r}, not a message")
         if cls is Chunk:
-            return Chunk.from_envelope(decode(self.data))
+            return decode_as(self.data, Chunk)
         try:
             obj = json.loads(self.data)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:

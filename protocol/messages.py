@@ -7,41 +7,52 @@ every failure is a `ProtocolError` naming the problem.
 from __future__ import annotations
 
 import base64
-import math
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
+import msgspec
 import numpy as np
 
 from protocol import check
 from protocol.errors import ProtocolError
 from protocol.spec import Spec
-from protocol.wire import Envelope, MessageKind, decode, encode
+from protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
 
 MAX_RANKS = 1 << 20
 MAX_IMAGE_SIDE = 8192  # px
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 POSITIONS = "positions"
+MAX_ABS_COORD_M = 1e12  # larger (or non-finite) header numbers are corrupt
+
+# Typed header metas of the hot-path messages, checked in C by msgspec on decode.
+Name = Annotated[str, msgspec.Meta(pattern=check.NAME_RE.pattern)]
+Count = Annotated[int, msgspec.Meta(ge=0, le=1 << 40)]
+Seconds = Annotated[float, msgspec.Meta(ge=0.0, le=1e12)]
+Coord = Annotated[float, msgspec.Meta(ge=-MAX_ABS_COORD_M, le=MAX_ABS_COORD_M)]
+Vec3 = tuple[Coord, Coord, Coord]
+Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_IMAGE_SIDE)]
 
 
-def _check_finite(arrays: dict[str, np.ndarray]) -> None:
-    """Raise unless every value of every floating array is finite.
+class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True):
+    run: Name
+    step: Count
+    time_s: Seconds
+    rank: Annotated[int, msgspec.Meta(ge=0, lt=MAX_RANKS)]
+    ranks: Annotated[int, msgspec.Meta(ge=1, le=MAX_RANKS)]
+    count: Count
+    spacing_m: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_ABS_COORD_M)]
+    bounds_m: tuple[Vec3, Vec3]
 
-    Fast path: a dot product propagates NaN and inf (one BLAS pass per array); only when it
-    is not finite (bad values, or overflow of huge finite ones) are values checked one by one.
-    """
-    with np.errstate(over="ignore", invalid="ignore"):
-        for name, array in arrays.items():
-            if array.dtype.kind != "f" or not array.size:
-                continue
-            flat = array.reshape(-1)
-            if math.isfinite(np.dot(flat, flat)):
-                continue
-            bad = np.flatnonzero(~np.isfinite(flat))
-            if bad.size:
-                row = int(bad[0]) // (flat.size // array.shape[0])
-                raise ProtocolError(f"field {name!r} has a non-finite value at particle {row}")
+
+class FrameMeta(msgspec.Struct, forbid_unknown_fields=True):
+    run: Name
+    view: Name
+    step: Count
+    time_s: Seconds
+    width: Side
+    height: Side
+    format: Literal["png"]
 
 
 @dataclass
@@ -72,10 +83,9 @@ class Chunk:
     def positions(self) -> np.ndarray:
         return self.fields[POSITIONS]
 
-    def meta(self) -> dict:
-        return {"run": self.run, "step": self.step, "time_s": self.time_s, "rank": self.rank,
-                "ranks": self.ranks, "count": self.count, "spacing_m": self.spacing_m,
-                "bounds_m": [list(self.bounds_m[0]), list(self.bounds_m[1])]}
+    def meta(self) -> ChunkMeta:
+        return ChunkMeta(self.run, self.step, self.time_s, self.rank, self.ranks, self.count,
+                         self.spacing_m, (tuple(self.bounds_m[0]), tuple(self.bounds_m[1])))
 
     def encode(self) -> bytearray:
         pos = self.fields.get(POSITIONS)
@@ -83,22 +93,17 @@ class Chunk:
             raise ProtocolError("chunk needs a 'positions' field of shape [n, 3]")
         fields = {POSITIONS: np.asarray(pos, dtype=np.float32)}
         fields.update((k, v) for k, v in self.fields.items() if k != POSITIONS)
-        payload = encode(self.KIND, self.meta(), fields, self.sent_ns or None)
-        return payload
+        return encode(self.KIND, self.meta(), fields, self.sent_ns or None)
 
     @classmethod
     def from_envelope(cls, env: Envelope) -> Chunk:
-        m = check.keys(env.meta, "chunk", {"run", "step", "time_s", "rank", "ranks", "count",
-                                           "spacing_m", "bounds_m"})
-        ranks = check.integer(m["ranks"], "chunk.ranks", 1, MAX_RANKS)
-        count = check.integer(m["count"], "chunk.count", 0)
-        bounds = m["bounds_m"]
-        if not isinstance(bounds, list) or len(bounds) != 2:
-            raise ProtocolError("chunk.bounds_m: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
-        lo = check.vector(bounds[0], "chunk.bounds_m[0]")
-        hi = check.vector(bounds[1], "chunk.bounds_m[1]")
-        if any(a > b for a, b in zip(lo, hi, strict=True)):
+        m: ChunkMeta = env.meta
+        if m.rank >= m.ranks:
+            raise ProtocolError(f"chunk.rank {m.rank} is not below chunk.ranks {m.ranks}")
+        lo, hi = m.bounds_m
+        if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
             raise ProtocolError(f"chunk.bounds_m: lower corner {lo} exceeds upper corner {hi}")
+        count = m.count
         pos = env.arrays.get(POSITIONS)
         if pos is None:
             raise ProtocolError("chunk has no 'positions' array")
@@ -109,13 +114,9 @@ class Chunk:
             if array.ndim not in (1, 2) or array.shape[0] != count:
                 raise ProtocolError(f"field {name!r} has shape {list(array.shape)}; "
                                     f"expected [{count}] or [{count}, k]")
-        _check_finite(env.arrays)
-        return cls(run=check.name(m["run"], "chunk.run"),
-                   step=check.integer(m["step"], "chunk.step", 0),
-                   time_s=check.number(m["time_s"], "chunk.time_s", 0.0),
-                   rank=check.integer(m["rank"], "chunk.rank", 0, ranks - 1), ranks=ranks,
-                   spacing_m=check.number(m["spacing_m"], "chunk.spacing_m", 0.0),
-                   bounds_m=(lo, hi), fields=dict(env.arrays), sent_ns=env.sent_ns)
+        env.check_finite()
+        return cls(m.run, m.step, m.time_s, m.rank, m.ranks, m.spacing_m, (lo, hi),
+                   dict(env.arrays), env.sent_ns)
 
 
 @dataclass
@@ -133,9 +134,8 @@ class Frame:
     png: bytes
     sent_ns: int = 0
 
-    def meta(self) -> dict:
-        return {"run": self.run, "view": self.view, "step": self.step, "time_s": self.time_s,
-                "width": self.width, "height": self.height, "format": "png"}
+    def meta(self) -> FrameMeta:
+        return FrameMeta(self.run, self.view, self.step, self.time_s, self.width, self.height, "png")
 
     def encode(self) -> bytearray:
         _check_png(self.png, self.width, self.height)
@@ -144,19 +144,12 @@ class Frame:
 
     @classmethod
     def from_envelope(cls, env: Envelope) -> Frame:
-        m = check.keys(env.meta, "frame", {"run", "view", "step", "time_s", "width", "height",
-                                           "format"})
-        if m["format"] != "png":
-            raise ProtocolError(f"frame.format: only 'png' is supported, got {m['format']!r}")
+        m: FrameMeta = env.meta
         image = env.arrays.get("png")
-        if image is None or set(env.arrays) != {"png"} or image.dtype != np.uint8 or image.ndim != 1:
+        if image is None or len(env.arrays) != 1 or image.dtype != np.uint8 or image.ndim != 1:
             raise ProtocolError("frame must carry exactly one uint8 array 'png'")
-        frame = cls(run=check.name(m["run"], "frame.run"), view=check.name(m["view"], "frame.view"),
-                    step=check.integer(m["step"], "frame.step", 0),
-                    time_s=check.number(m["time_s"], "frame.time_s", 0.0),
-                    width=check.integer(m["width"], "frame.width", 1, MAX_IMAGE_SIDE),
-                    height=check.integer(m["height"], "frame.height", 1, MAX_IMAGE_SIDE),
-                    png=image.tobytes(), sent_ns=env.sent_ns)
+        frame = cls(m.run, m.view, m.step, m.time_s, m.width, m.height, image.tobytes(),
+                    env.sent_ns)
         _check_png(frame.png, frame.width, frame.height)
         return frame
 
@@ -165,7 +158,8 @@ class Frame:
         sec, nsec = divmod(self.sent_ns, 1_000_000_000)
         return {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": self.view,
                 "format": "png", "data": base64.b64encode(self.png).decode("ascii"),
-                **{k: v for k, v in self.meta().items() if k != "format"}}
+                "run": self.run, "view": self.view, "step": self.step, "time_s": self.time_s,
+                "width": self.width, "height": self.height}
 
     @classmethod
     def from_json(cls, obj: dict, sent_ns: int = 0) -> Frame:
@@ -173,8 +167,11 @@ class Frame:
             png = base64.b64decode(obj["data"], validate=True)
         except (KeyError, TypeError, ValueError) as exc:
             raise ProtocolError(f"frame.data: not base64 PNG bytes ({exc})") from None
-        meta = {k: obj.get(k) for k in ("run", "view", "step", "time_s", "width", "height")}
-        meta["format"] = obj.get("format")
+        fields = {k: obj.get(k) for k in ("run", "view", "step", "time_s", "width", "height")}
+        try:
+            meta = msgspec.convert({**fields, "format": obj.get("format")}, FrameMeta)
+        except msgspec.ValidationError as exc:
+            raise ProtocolError(f"frame: {exc}") from None
         env = Envelope(MessageKind.FRAME, sent_ns, meta, {"png": np.frombuffer(png, np.uint8)})
         return cls.from_envelope(env)
 
@@ -293,17 +290,20 @@ class Event(_JsonMessage):
                    sent_ns=sent_ns)
 
 
+META_TYPES = {MessageKind.CHUNK: ChunkMeta, MessageKind.FRAME: FrameMeta}
+_CLASSES = {MessageKind.CHUNK: Chunk, MessageKind.FRAME: Frame, MessageKind.TIMING: Timing,
+            MessageKind.EVENT: Event, MessageKind.SPEC: Spec}
+
+
 def decode_message(payload):
     """Decode any message type; raises ProtocolError on malformed input."""
-    env = decode(payload)
-    cls = {MessageKind.CHUNK: Chunk, MessageKind.FRAME: Frame, MessageKind.TIMING: Timing,
-           MessageKind.EVENT: Event, MessageKind.SPEC: Spec}[env.kind]
-    return cls.from_envelope(env)
+    kind = peek_kind(payload)
+    return _CLASSES[kind].from_envelope(decode(payload, META_TYPES.get(kind, dict)))
 
 
 def decode_as(payload, cls):
     """Decode and require a given message type."""
-    env = decode(payload)
-    if env.kind != cls.KIND:
-        raise ProtocolError(f"expected a {cls.KIND.name.lower()} message, got {env.kind.name.lower()}")
-    return cls.from_envelope(env)
+    kind = peek_kind(payload)
+    if kind != cls.KIND:
+        raise ProtocolError(f"expected a {cls.KIND.name.lower()} message, got {kind.name.lower()}")
+    return cls.from_envelope(decode(payload, META_TYPES.get(kind, dict)))

@@ -12,6 +12,7 @@ Layout (all little-endian), version 1::
     16      8     total payload length, bytes
     24      8     sent time, ns since the Unix epoch (stamped at publish)
     32      H     header: UTF-8 JSON object {"meta": {...}, "arrays": [{"name", "dtype", "shape"}]}
+                  (decoded and type-checked by msgspec against the message kind's meta type)
     ...           zero padding to a 64-byte boundary
     ...           each array, raw little-endian C order, starting on a 64-byte boundary
 
@@ -28,7 +29,9 @@ import struct
 import time
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
+import msgspec
 import numpy as np
 
 from protocol.errors import ProtocolError
@@ -67,6 +70,36 @@ class MessageKind(IntEnum):
     EVENT = 5
 
 
+WireDtype = Literal["<f4", "<f8", "<i4", "<i8", "<u4", "<u8", "<i2", "<u2", "|i1", "|u1"]
+MetaT = TypeVar("MetaT")
+
+
+class ArrayDesc(msgspec.Struct, forbid_unknown_fields=True):
+    """One array of the payload: its name, wire dtype and shape."""
+
+    name: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+    dtype: WireDtype
+    shape: Annotated[list[Annotated[int, msgspec.Meta(ge=0, lt=MAX_PAYLOAD_BYTES)]],
+                     msgspec.Meta(max_length=MAX_NDIM)]
+
+
+class Header(msgspec.Struct, Generic[MetaT], forbid_unknown_fields=True):
+    """The JSON header: typed meta of the message kind, then the array descriptors."""
+
+    meta: MetaT
+    arrays: Annotated[list[ArrayDesc], msgspec.Meta(max_length=MAX_ARRAYS)]
+
+
+_DECODERS: dict[Any, msgspec.json.Decoder] = {}
+
+
+def _header_decoder(meta_type) -> msgspec.json.Decoder:
+    """A cached typed decoder: types, ranges and unknown fields are checked in C."""
+    if meta_type not in _DECODERS:
+        _DECODERS[meta_type] = msgspec.json.Decoder(Header[meta_type])
+    return _DECODERS[meta_type]
+
+
 @dataclass(frozen=True)
 class Envelope:
     """A decoded envelope: kind, sender's time, header meta and array views."""
@@ -75,6 +108,31 @@ class Envelope:
     sent_ns: int
     meta: dict
     arrays: dict[str, np.ndarray]
+    payload: memoryview | None = None
+    float_span: tuple[int, int] = (0, 0)  # byte range covering every float array
+
+    def check_finite(self) -> None:
+        """Raise unless every value of every float array is finite.
+
+        Fast path: one dot product over the byte span of all float arrays, read as float32
+        (padding is zero; a float64 NaN or inf is one as float32 too), propagates any NaN or
+        inf in one BLAS pass. Only when it is not finite (bad values, huge finite values that
+        overflow, or other bytes in the span that look like NaN) are arrays checked one by one.
+        """
+        lo, hi = self.float_span
+        if hi <= lo:
+            return
+        span = np.frombuffer(self.payload, dtype="<f4", count=(hi - lo) // 4, offset=lo)
+        with np.errstate(over="ignore", invalid="ignore"):
+            if math.isfinite(np.dot(span, span)):
+                return
+        for name, array in self.arrays.items():
+            if array.dtype.kind == "f" and array.size:
+                flat = array.reshape(-1)
+                bad = np.flatnonzero(~np.isfinite(flat))
+                if bad.size:
+                    row = int(bad[0]) // (flat.size // array.shape[0])
+                    raise ProtocolError(f"field {name!r} has a non-finite value at particle {row}")
 
 
 def _aligned(offset: int) -> int:
@@ -90,7 +148,7 @@ def wire_dtype(array: np.ndarray) -> str:
     return key
 
 
-def encode(kind: MessageKind, meta: dict, arrays: dict[str, np.ndarray] | None = None,
+def encode(kind: MessageKind, meta, arrays: dict[str, np.ndarray] | None = None,
            sent_ns: int | None = None) -> bytearray:
     """Encode one message; arrays are copied once, into the returned buffer."""
     arrays = arrays or {}
@@ -102,11 +160,11 @@ def encode(kind: MessageKind, meta: dict, arrays: dict[str, np.ndarray] | None =
         dt = wire_dtype(a)
         descs.append({"name": name, "dtype": dt, "shape": list(a.shape)})
         parts.append(np.ascontiguousarray(a, dtype=DTYPES[dt]))
-    try:
-        header = json.dumps({"meta": meta, "arrays": descs}, allow_nan=False,
-                            separators=(",", ":")).encode()
-    except ValueError as exc:
-        raise ProtocolError(f"header is not finite JSON: {exc}") from exc
+    try:  # the stdlib encoder refuses NaN and infinity (msgspec would write null)
+        header = json.dumps({"meta": msgspec.to_builtins(meta), "arrays": descs},
+                            allow_nan=False, separators=(",", ":")).encode()
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError(f"header is not finite JSON: {exc}") from None
     if len(header) > MAX_HEADER_BYTES:
         raise ProtocolError(f"header is {len(header)} bytes, at most {MAX_HEADER_BYTES}")
     offsets, end = [], PREFIX_SIZE + len(header)
@@ -156,30 +214,12 @@ def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
     return kind, hlen, total, sent_ns
 
 
-_DESC_KEYS = {"name", "dtype", "shape"}
-
-
-def _shape(desc: dict, index: int) -> tuple[str, np.dtype, tuple[int, ...]]:
-    if type(desc) is not dict or desc.keys() != _DESC_KEYS:
-        raise ProtocolError(f"array descriptor {index} must have exactly name, dtype, shape")
-    name, dt, shape = desc["name"], desc["dtype"], desc["shape"]
-    if type(name) is not str or not 0 < len(name) <= 64:
-        raise ProtocolError(f"array {index}: name must be a string of 1-64 characters")
-    dtype = DTYPES.get(dt) if type(dt) is str else None
-    if dtype is None:
-        raise ProtocolError(f"array {name!r}: dtype {dt!r:.40} is not one of {sorted(DTYPES)}")
-    if (type(shape) is not list or len(shape) > MAX_NDIM
-            or not all(type(s) is int and 0 <= s < MAX_PAYLOAD_BYTES for s in shape)):
-        raise ProtocolError(f"array {name!r}: shape {shape!r:.60} must be up to {MAX_NDIM} "
-                            "non-negative ints")
-    return name, dtype, tuple(shape)
-
-
-def decode(payload) -> Envelope:
+def decode(payload, meta_type: Any = dict) -> Envelope:
     """Validate and decode an envelope. Arrays are views of `payload` (no copy).
 
-    Raises ProtocolError naming the problem; nothing large is allocated before the
-    declared sizes have been checked against the bytes received.
+    `meta_type` is the msgspec type of the header meta (a Struct per message kind, or dict).
+    Raises ProtocolError naming the problem; nothing large is allocated before the declared
+    sizes have been checked against the bytes received.
     """
     try:
         view = memoryview(payload).cast("B")
@@ -187,33 +227,31 @@ def decode(payload) -> Envelope:
         raise ProtocolError(f"payload is not a bytes-like object: {exc}") from None
     kind, hlen, total, sent_ns = _prefix(view)
     try:
-        header = json.loads(bytes(view[PREFIX_SIZE:PREFIX_SIZE + hlen]))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        header = _header_decoder(meta_type).decode(view[PREFIX_SIZE:PREFIX_SIZE + hlen])
+    except msgspec.ValidationError as exc:
+        raise ProtocolError(f"{kind.name.lower()} header: {exc}") from None
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise ProtocolError(f"header is not valid JSON: {str(exc)[:80]}") from None
-    if not isinstance(header, dict) or set(header) != {"meta", "arrays"}:
-        raise ProtocolError("header must be an object with exactly 'meta' and 'arrays'")
-    meta, descs = header["meta"], header["arrays"]
-    if not isinstance(meta, dict) or not isinstance(descs, list):
-        raise ProtocolError("header 'meta' must be an object and 'arrays' a list")
-    if len(descs) > MAX_ARRAYS:
-        raise ProtocolError(f"{len(descs)} arrays, at most {MAX_ARRAYS} allowed")
     arrays: dict[str, np.ndarray] = {}
     end = PREFIX_SIZE + hlen
-    for i, desc in enumerate(descs):
-        name, dt, shape = _shape(desc, i)
+    float_lo, float_hi = total, 0
+    for desc in header.arrays:
+        name, dt, shape = desc.name, DTYPES[desc.dtype], desc.shape
         if name in arrays:
             raise ProtocolError(f"array {name!r} appears twice")
-        nbytes = math.prod(shape) * dt.itemsize
+        count = math.prod(shape)
+        nbytes = count * dt.itemsize
         start = _aligned(end)
         if start + nbytes > total:
             raise ProtocolError(f"array {name!r} ({nbytes} bytes at {start}) runs past the "
                                 f"end of the {total}-byte payload")
         if nbytes:
-            arrays[name] = np.frombuffer(view, dtype=dt, count=math.prod(shape),
-                                         offset=start).reshape(shape)
+            arrays[name] = np.frombuffer(view, dtype=dt, count=count, offset=start).reshape(shape)
+            if dt.kind == "f":
+                float_lo, float_hi = min(float_lo, start), start + nbytes
         else:
             arrays[name] = np.empty(shape, dtype=dt)
         end = start + nbytes
     if end != total:
         raise ProtocolError(f"arrays end at byte {end} but the payload is {total} bytes")
-    return Envelope(kind, sent_ns, meta, arrays)
+    return Envelope(kind, sent_ns, header.meta, arrays, view, (float_lo, float_hi))

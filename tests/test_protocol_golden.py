@@ -10,6 +10,7 @@ import json
 import os
 from pathlib import Path
 
+import msgspec
 import pytest
 from conftest import sample_messages
 
@@ -23,7 +24,7 @@ REGEN = os.environ.get("MINORITY_REGEN_GOLDEN") == "1"
 def summary(message) -> dict:
     """What a decoder must produce from the golden bytes, as JSON."""
     if isinstance(message, Chunk):
-        return {"meta": message.meta(), "sent_ns": message.sent_ns,
+        return {"meta": msgspec.to_builtins(message.meta()), "sent_ns": message.sent_ns,
                 "fields": {k: {"dtype": v.dtype.str, "shape": list(v.shape),
                                "sha256": hashlib.sha256(v.tobytes()).hexdigest()}
                            for k, v in message.fields.items()}}

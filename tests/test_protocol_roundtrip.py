@@ -101,3 +101,16 @@ def test_spec_and_event_types():
     assert isinstance(decode_message(spec.encode()), Spec)
     assert isinstance(decode_message(sample_messages()[3].encode()), Timing)
     assert isinstance(decode_message(sample_messages()[4].encode()), Event)
+
+
+def test_finite_check_fast_path_has_no_false_verdicts():
+    chunk = make_chunk(n=64)
+    chunk.fields["flags"] = np.full(64, 0xFF, np.uint8)  # bytes that read as NaN in float32
+    chunk.fields["huge"] = np.full(64, 3e38, np.float32)  # finite, but overflows a dot product
+    chunk.fields["after"] = np.ones(64, np.float32)
+    back = decode_as(chunk.encode(), Chunk)
+    np.testing.assert_array_equal(back.fields["huge"], chunk.fields["huge"])
+    chunk.fields["f64"] = np.ones(64)
+    chunk.fields["f64"][17] = np.nan
+    with pytest.raises(ProtocolError, match="'f64' has a non-finite value at particle 17"):
+        decode_as(chunk.encode(), Chunk)

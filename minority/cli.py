@@ -66,6 +66,28 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from sim.driver import SimulationError
+    from sim.runner import run_scene
+    from sim.scene import SceneError, builtin_scene_path
+
+    try:
+        scene = Path(args.scene)
+        if not scene.exists() and scene.suffix == "":
+            scene = builtin_scene_path(args.scene)
+        out = args.out or Path(f"{scene.stem}.h5")
+        summary = run_scene(scene, out, dt=args.dt, threads=args.threads,
+                            progress=not args.quiet)
+    except (SceneError, SimulationError, ValueError, OSError) as exc:
+        print(f"minority sim: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"{summary.particles} particles, {summary.steps} steps, {summary.frames} frames, "
+          f"{summary.sim_time_s:.3f} s simulated in {summary.wall_s:.1f} s wall "
+          f"({summary.particle_steps_per_s:.3g} particle-steps/s) -> {summary.out_path}",
+          file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="minority",
@@ -80,11 +102,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_not_built("serve"))
 
     p = sub.add_parser("sim", help="run the MPM simulation of a scene",
-                       description="Run the MPM simulation of a scene TOML and write HDF5.")
-    p.add_argument("scene", type=Path, help="scene TOML file (keys and units in the README)")
-    p.add_argument("--out", type=Path, help="output HDF5 file")
-    _add_network(p)
-    p.set_defaults(func=_not_built("sim"))
+                       description="Run the 3D MLS-MPM simulation (Drucker-Prager sand) of a "
+                                   "scene and write its frames to HDF5 (positions m, "
+                                   "velocities m/s, displacements m, float32).")
+    p.add_argument("scene", help="scene TOML file (keys and units in sim/README.md), or the "
+                                 "name of a shipped scene: tiny, cylinder_small, column_13k, "
+                                 "column_100k, column_1m")
+    p.add_argument("--out", type=Path, help="output HDF5 file (default: SCENE_NAME.h5)")
+    p.add_argument("--dt", type=float, metavar="S",
+                   help="fixed time step in s; refused if above the CFL bound (default: the "
+                        "CFL step, recomputed every step)")
+    p.add_argument("--threads", type=int, metavar="N", help="numba threads (default: all cores)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=_cmd_sim)
 
     p = sub.add_parser("oracle", help="GNS surrogate: dataset, train, rollout, spec",
                        description="Train the GNS surrogate and derive oracle specs from it.")

@@ -28,7 +28,7 @@ def test_subcommand_help(name, capsys):
 
 def test_network_flags_are_shared():
     parser = build_parser()
-    for name, extra in [("serve", []), ("record", []), ("replay", ["x.mcap"]), ("sim", ["s.toml"])]:
+    for name, extra in [("serve", []), ("record", []), ("replay", ["x.mcap"])]:
         args = parser.parse_args([name, *extra, "--connect", "tcp/127.0.0.1:1", "--listen",
                                   "tcp/127.0.0.1:2", "--config", "z.json5"])
         assert args.connect == ["tcp/127.0.0.1:1"] and args.listen == ["tcp/127.0.0.1:2"]
@@ -48,3 +48,17 @@ def test_record_without_server_fails_clearly(tmp_path):
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert "cannot reach a zenoh peer at tcp/127.0.0.1:9" in proc.stderr
+
+
+def test_sim_runs_a_shipped_scene(tmp_path, capsys):
+    out = tmp_path / "tiny.h5"
+    assert main(["sim", "tiny", "--out", str(out), "--quiet"]) == 0
+    assert out.stat().st_size > 0
+    assert "400 particles" in capsys.readouterr().err
+
+
+def test_sim_bad_scene_and_unstable_dt_fail_clearly(tmp_path, capsys):
+    assert main(["sim", "no_such_scene", "--quiet"]) == 1
+    assert "no shipped scene 'no_such_scene'" in capsys.readouterr().err
+    assert main(["sim", "tiny", "--dt", "1", "--out", str(tmp_path / "x.h5"), "--quiet"]) == 1
+    assert "exceeds the stable bound" in capsys.readouterr().err

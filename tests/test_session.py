@@ -7,8 +7,16 @@ import pytest
 import zenoh
 from conftest import free_port
 
-from protocol.session import (CHUNK_QOS, CONTROL_QOS, DEFAULT_ENDPOINT, SHM_POOL_BYTES, NetworkOptions,
-                              Role, make_config, open_session)
+from protocol.session import (
+    CHUNK_QOS,
+    CONTROL_QOS,
+    DEFAULT_ENDPOINT,
+    SHM_POOL_BYTES,
+    NetworkOptions,
+    Role,
+    make_config,
+    open_session,
+)
 
 DEPLOY = Path(__file__).parent.parent / "deploy"
 

@@ -1,0 +1,264 @@
+"""The MPM driver: owns particle and grid state, the phase order and the timing.
+
+One step: bin particles by block (counting sort) -> zero grid -> P2G -> grid update
+(gravity, walls) -> G2P (advection, plasticity, stress). The time step follows the CFL
+condition dt = cfl * dx / (c_p + max |v|), recomputed every step; a fixed user dt is
+accepted only while it stays below that bound.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from sim import kernels
+from sim.scene import FACES, Scene
+from sim.state import GridState, ParticleState, make_grid, seed_particles
+
+REORDER_INTERVAL_STEPS = 20  # physically re-sort particle arrays this often (locality)
+UNBOUNDED_M = 1e30  # extent of the domain-face walls along the other axes
+
+
+class SimulationError(RuntimeError):
+    """The simulation cannot continue; the message says why."""
+
+
+class NonFiniteError(SimulationError):
+    """A particle field became NaN or infinite."""
+
+
+class TimeStepError(SimulationError, ValueError):
+    """A requested time step exceeds the stable (CFL) bound."""
+
+
+@dataclass
+class PhaseTimes:
+    """Accumulated wall time per phase, s."""
+
+    bin: float = 0.0
+    p2g: float = 0.0
+    grid: float = 0.0
+    g2p: float = 0.0
+
+    @property
+    def total(self) -> float:
+        return self.bin + self.p2g + self.grid + self.g2p
+
+
+@dataclass
+class WallArrays:
+    """All walls (6 domain faces first, then interior walls) as kernel arrays."""
+
+    axis: np.ndarray  # [w] int64
+    pos: np.ndarray  # [w] float64, m
+    side: np.ndarray  # [w] int64, +1 or -1: direction of the free region
+    mu: np.ndarray  # [w] float64, Coulomb friction coefficient
+    lo: np.ndarray  # [w, 3] float64, m, extent of the wall
+    hi: np.ndarray  # [w, 3] float64, m
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> WallArrays:
+        rows = []
+        for f, face in enumerate(FACES):
+            axis, is_max = divmod(f, 2)
+            pos = scene.size_m[axis] if is_max else 0.0
+            rows.append((axis, pos, -1 if is_max else 1, scene.face_friction[face],
+                         (-UNBOUNDED_M,) * 3, (UNBOUNDED_M,) * 3))
+        for w in scene.walls:
+            rows.append((w.axis, w.position_m, w.side, w.friction, w.lo_m, w.hi_m))
+        return cls(
+            axis=np.array([r[0] for r in rows], dtype=np.int64),
+            pos=np.array([r[1] for r in rows], dtype=np.float64),
+            side=np.array([r[2] for r in rows], dtype=np.int64),
+            mu=np.array([r[3] for r in rows], dtype=np.float64),
+            lo=np.array([r[4] for r in rows], dtype=np.float64).reshape(-1, 3),
+            hi=np.array([r[5] for r in rows], dtype=np.float64).reshape(-1, 3),
+        )
+
+
+@dataclass
+class Diagnostics:
+    """Particle sums at one instant."""
+
+    mass_kg: float
+    momentum_kg_m_s: np.ndarray  # [3]
+    kinetic_energy_j: float
+    potential_energy_j: float  # gravitational, -sum m g.x
+    max_speed_m_s: float
+
+
+@dataclass
+class _Binning:
+    """Scratch arrays of the counting sort (reused every step)."""
+
+    nblocks3: np.ndarray
+    block_start: np.ndarray
+    order: np.ndarray
+    color_start: np.ndarray
+    color_blocks: np.ndarray
+    key: np.ndarray
+
+    @classmethod
+    def allocate(cls, n: int, grid_shape) -> _Binning:
+        nb3 = np.array([(s + kernels.BLOCK_CELLS - 1) // kernels.BLOCK_CELLS
+                        for s in grid_shape], dtype=np.int64)
+        nb = int(np.prod(nb3))
+        return cls(nb3, np.zeros(nb + 1, np.int64), np.zeros(n, np.int64),
+                   np.zeros(kernels.N_COLORS + 1, np.int64), np.zeros(nb, np.int64),
+                   np.zeros(n, np.int64))
+
+
+@dataclass
+class Simulator:
+    """Single-process MLS-MPM simulation of one scene."""
+
+    scene: Scene
+    fixed_dt: float | None = None
+    threads: int | None = None
+    particles: ParticleState = field(init=False)
+    grid: GridState = field(init=False)
+    time_s: float = field(init=False, default=0.0)
+    step_count: int = field(init=False, default=0)
+    clamp_count: int = field(init=False, default=0)  # particle-steps clamped to the domain
+    times: PhaseTimes = field(init=False, default_factory=PhaseTimes)
+
+    def __post_init__(self) -> None:
+        if self.threads is not None:
+            if not 1 <= self.threads <= numba.config.NUMBA_NUM_THREADS:
+                raise ValueError(f"threads must be in [1, {numba.config.NUMBA_NUM_THREADS}], "
+                                 f"got {self.threads}")
+            numba.set_num_threads(self.threads)
+        self.particles = seed_particles(self.scene)
+        self.grid = make_grid(self.scene)
+        self.walls = WallArrays.from_scene(self.scene)
+        self._bins = _Binning.allocate(self.particles.n, self.grid.shape)
+        self._stats = np.zeros(3)
+        self._sums = np.zeros(8)
+        self._gravity = np.array(self.scene.gravity_m_s2, dtype=np.float64)
+        self._lo = np.zeros(3)
+        self._hi = np.array(self.scene.size_m, dtype=np.float64)
+        mat = self.scene.material
+        self._lam, self._mu, self._alpha = mat.lame_lambda_pa, mat.shear_modulus_pa, mat.dp_alpha
+        self.max_speed_m_s = float(np.sqrt((self.particles.v ** 2).sum(axis=1).max()))
+        if self.fixed_dt is not None:
+            self.check_dt(self.fixed_dt)
+
+    # --- time step -------------------------------------------------------------------
+    def stable_dt(self) -> float:
+        """CFL bound, s: cfl * dx / (c_p + max particle speed)."""
+        c = self.scene.material.p_wave_speed_m_s
+        return self.scene.cfl * self.scene.cell_size_m / (c + self.max_speed_m_s)
+
+    def check_dt(self, dt: float) -> None:
+        bound = self.stable_dt()
+        if not (math.isfinite(dt) and 0.0 < dt <= bound):
+            raise TimeStepError(
+                f"time step {dt:.6g} s exceeds the stable bound {bound:.6g} s at step "
+                f"{self.step_count} (cfl {self.scene.cfl} * dx {self.scene.cell_size_m} m / "
+                f"(p-wave speed {self.scene.material.p_wave_speed_m_s:.4g} m/s + max speed "
+                f"{self.max_speed_m_s:.4g} m/s)); use dt <= {bound:.6g} s or no dt")
+
+    def next_dt(self, until_s: float) -> float:
+        """Time step for the next step so that the run lands exactly on until_s (s)."""
+        if self.fixed_dt is not None:
+            self.check_dt(self.fixed_dt)
+            return self.fixed_dt
+        remaining = until_s - self.time_s
+        bound = self.stable_dt()
+        if remaining <= 0.0:
+            return bound
+        return remaining / math.ceil(remaining / bound * (1.0 - 1e-12))
+
+    # --- phases ----------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance one explicit MLS-MPM step of dt seconds."""
+        ps, g, b = self.particles, self.grid, self._bins
+        inv_dx = 1.0 / g.dx
+        x0 = g.x0
+        t0 = time.perf_counter()
+        bad = kernels.bin_particles(ps.x, x0, inv_dx, np.array(g.shape, np.int64), b.nblocks3,
+                                   b.block_start, b.order, b.color_start, b.color_blocks,
+                                   b.key)
+        if bad >= 0:
+            self._raise_nonfinite_or_escape(bad)
+        if self.step_count % REORDER_INTERVAL_STEPS == 0:
+            ps.permute(b.order)
+            b.order[:] = np.arange(ps.n)
+        t1 = time.perf_counter()
+        g.data.fill(0.0)
+        kernels.p2g(ps.x, ps.v, ps.C, ps.tau, ps.mass, ps.vol0, b.order, b.block_start,
+                    b.color_start, b.color_blocks, g.data, x0, inv_dx, dt)
+        t2 = time.perf_counter()
+        w = self.walls
+        kernels.grid_update(g.data, g.origin, g.dx, dt, self._gravity, w.axis, w.pos, w.side,
+                            w.mu, w.lo, w.hi)
+        t3 = time.perf_counter()
+        kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, inv_dx, dt, self._lo,
+                    self._hi, self._lam, self._mu, self._alpha, self._stats)
+        t4 = time.perf_counter()
+        self.times.bin += t1 - t0
+        self.times.p2g += t2 - t1
+        self.times.grid += t3 - t2
+        self.times.g2p += t4 - t3
+        self.step_count += 1
+        self.time_s += dt
+        if self._stats[1] > 0:
+            self.check_finite()
+        self.clamp_count += int(self._stats[2])
+        self.max_speed_m_s = math.sqrt(self._stats[0])
+
+    def reached(self, until_s: float) -> bool:
+        """True once time_s is at until_s (within half a step for a fixed dt)."""
+        if self.fixed_dt is not None:
+            return self.time_s + 0.5 * self.fixed_dt >= until_s
+        return self.time_s >= until_s * (1.0 - 1e-12)
+
+    def advance_to(self, until_s: float, max_steps: int | None = None) -> int:
+        """Step until reached(until_s) or max_steps steps were taken; returns steps."""
+        steps = 0
+        while not self.reached(until_s) and (max_steps is None or steps < max_steps):
+            self.step(self.next_dt(until_s))
+            steps += 1
+        if self.fixed_dt is None and self.reached(until_s):
+            self.time_s = max(self.time_s, until_s)  # drop the last ulps of drift
+        return steps
+
+    # --- guards and diagnostics ------------------------------------------------------
+    def check_finite(self) -> None:
+        """Raise NonFiniteError naming step, particle and field if any value is not finite."""
+        ps = self.particles
+        p, code = kernels.find_nonfinite(ps.x, ps.v, ps.C, ps.F, ps.tau)
+        if p >= 0:
+            count = int(self._stats[1])
+            raise NonFiniteError(
+                f"non-finite {kernels.FIELD_NAMES[code]} at step {self.step_count} "
+                f"(t = {self.time_s:.6g} s), particle {int(ps.pid[p])}"
+                + (f"; {count} particles affected" if count > 0 else ""))
+
+    def _raise_nonfinite_or_escape(self, slot: int) -> None:
+        self.check_finite()
+        ps = self.particles
+        raise SimulationError(
+            f"particle {int(ps.pid[slot])} at {ps.x[slot].tolist()} m left the grid at step "
+            f"{self.step_count}")
+
+    def diagnostics(self) -> Diagnostics:
+        ps = self.particles
+        kernels.particle_sums(ps.x, ps.v, ps.mass, self._gravity, self._sums)
+        s = self._sums
+        return Diagnostics(float(s[0]), s[1:4].copy(), float(s[4]), float(s[5]), float(s[6]))
+
+    def fields_by_id(self) -> dict[str, np.ndarray]:
+        """Positions, velocities and displacements in original particle order, [n, 3]."""
+        ps = self.particles
+        out = {}
+        for name, arr in (("positions", ps.x), ("velocities", ps.v),
+                          ("displacements", ps.x - ps.x0)):
+            a = np.empty_like(arr)
+            a[ps.pid] = arr
+            out[name] = a
+        return out

@@ -1,0 +1,129 @@
+"""Fast 3x3 SVD against numpy, and the Drucker-Prager return mapping's properties."""
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+from sim.plasticity import dp_project, dp_project_numpy, dp_yield
+from sim.scene import Material
+from sim.svd import svd3
+
+# tolerances (absolute, on O(1) quantities)
+SVD_TOL = 1e-12
+DP_TOL = 1e-12
+
+SAND = Material(1800.0, 1.0e6, 0.3, 30.0)
+
+
+@njit(cache=True)
+def _svd_batch(Fs, Us, sigs, Vs):
+    S = np.empty((3, 3))
+    for p in range(Fs.shape[0]):
+        svd3(Fs[p], Us[p], sigs[p], Vs[p], S)
+
+
+@njit(cache=True)
+def _dp_batch(sigs, eps, lam, mu, alpha, dgamma):
+    for p in range(sigs.shape[0]):
+        dgamma[p] = dp_project(sigs[p], eps[p], lam, mu, alpha)
+
+
+@njit(cache=True)
+def _log(a):
+    out = np.empty_like(a)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            out[i, j] = math.log(a[i, j])
+    return out
+
+
+def _random_rotations(rng, n):
+    q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    q *= np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1.0
+    return q
+
+
+def _cases(rng):
+    n = 2000
+    near_identity = np.eye(3) + 0.05 * rng.normal(size=(n, 3, 3))
+    general = rng.normal(size=(n, 3, 3))
+    rot = _random_rotations(rng, n)
+    stretches = rng.uniform(0.5, 1.5, size=(n, 3))
+    stretches[: n // 4, 1] = stretches[: n // 4, 0]  # repeated singular values
+    stretches[n // 4: n // 2] = 1.0  # pure rotations
+    rotated = rot @ (stretches[:, :, None] * _random_rotations(rng, n).transpose(0, 2, 1))
+    special = np.array([np.eye(3), np.diag([2.0, 2.0, 1.0]), np.zeros((3, 3)),
+                        np.diag([1.0, 1e-9, 1e-9]), np.diag([3.0, 2.0, 1.0])[[2, 0, 1]]])
+    return np.concatenate([near_identity, general, rotated, special])
+
+
+def test_svd_matches_numpy():
+    rng = np.random.default_rng(7)
+    F = _cases(rng)
+    n = F.shape[0]
+    U, sig, V = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
+    _svd_batch(F, U, sig, V)
+    scale = np.maximum(1.0, np.abs(F).max(axis=(1, 2)))
+    recon = U @ (sig[:, :, None] * V.transpose(0, 2, 1))
+    assert np.abs(recon - F).max(axis=(1, 2)).max() / 1.0 <= SVD_TOL * scale.max()
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+    assert np.abs(U.transpose(0, 2, 1) @ U - eye).max() < SVD_TOL
+    assert np.abs(V.transpose(0, 2, 1) @ V - eye).max() < SVD_TOL
+    assert np.allclose(np.linalg.det(U), 1.0) and np.allclose(np.linalg.det(V), 1.0)
+    ref = np.linalg.svd(F, compute_uv=False)
+    # ours: decreasing magnitude, last one signed with det(F)
+    assert np.abs(np.abs(sig) - ref).max() < SVD_TOL * scale.max()
+    det = np.linalg.det(F)
+    nondegenerate = np.abs(det) > 1e-6
+    assert np.all(np.sign(sig[nondegenerate, 2]) == np.sign(det[nondegenerate]))
+
+
+def _strains(rng, n=5000):
+    e = rng.normal(scale=0.02, size=(n, 3))
+    e[: n // 5] -= 0.05  # mostly compressed
+    e[n // 5: 2 * n // 5] = -0.01  # purely volumetric compression (elastic)
+    return e
+
+
+def test_dp_projection_lands_inside_cone():
+    rng = np.random.default_rng(3)
+    sig = np.exp(_strains(rng))
+    eps = _log(sig)  # the Hencky strains the projection sees (numba's log, bit for bit)
+    lam, mu, alpha = SAND.lame_lambda_pa, SAND.shear_modulus_pa, SAND.dp_alpha
+    out = np.empty_like(eps)
+    dgamma = np.empty(len(eps))
+    _dp_batch(sig, out, lam, mu, alpha, dgamma)
+    yields = np.array([dp_yield(*e, lam, mu, alpha) for e in out])
+    assert yields.max() <= DP_TOL
+    assert (out.sum(axis=1) <= DP_TOL).all()  # no tension survives
+    assert (dgamma >= 0.0).all()
+    # elastic states (inside the cone, compressive) are unchanged, bit for bit
+    inside = np.array([dp_yield(*e, lam, mu, alpha) <= 0.0 for e in eps]) & (eps.sum(1) <= 0)
+    assert inside.sum() > 100
+    assert np.array_equal(out[inside], eps[inside])
+    assert (dgamma[inside] == 0.0).all()
+    # yielded states were moved: on the cone surface (shear) or the tip (tension)
+    moved = ~inside
+    assert moved.sum() > 100
+    tension = eps.sum(axis=1) > 0
+    assert np.all(out[tension] == 0.0)
+    shear = moved & ~tension
+    assert np.abs(yields[shear]).max() < 1e-10
+    # the projection keeps the volumetric strain in shear (radial return along deviator)
+    assert np.allclose(out[shear].sum(1), eps[shear].sum(1), atol=1e-14)
+    # idempotent
+    again = np.empty_like(out)
+    _dp_batch(np.exp(out), again, lam, mu, alpha, dgamma)
+    assert np.allclose(again, out, atol=1e-13)
+    # the numpy version used by the reference step agrees
+    assert np.allclose(dp_project_numpy(sig, lam, mu, alpha), out, atol=1e-14)
+
+
+def test_dp_alpha_formula():
+    for phi in (10.0, 30.0, 60.0):
+        s = math.sin(math.radians(phi))
+        m = Material(1800.0, 1e6, 0.3, phi)
+        assert m.dp_alpha == pytest.approx(math.sqrt(2 / 3) * 2 * s / (3 - s))

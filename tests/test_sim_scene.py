@@ -1,0 +1,66 @@
+"""Scene loading: shipped scenes, particle counts, errors that name the bad key."""
+
+import pytest
+
+from sim.columns import ColumnSpec, channel_column_toml
+from sim.scene import SCENES_DIR, SceneError, Shape, builtin_scene_path, load_scene, loads_scene
+from sim.state import seed_particles
+
+SHIPPED_COUNTS = {"tiny": 400, "cylinder_small": 1344, "column_13k": 12_960,
+                  "column_100k": 103_680}
+
+
+@pytest.mark.parametrize("name,count", sorted(SHIPPED_COUNTS.items()))
+def test_shipped_scene_particle_counts(name, count):
+    scene = load_scene(builtin_scene_path(name))
+    assert seed_particles(scene).n == count
+
+
+def test_all_shipped_scenes_load():
+    names = sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+    assert {"tiny", "cylinder_small", "column_13k", "column_100k", "column_1m"} <= set(names)
+    for name in names:
+        scene = load_scene(builtin_scene_path(name))
+        assert scene.toml_text
+    big = load_scene(builtin_scene_path("column_1m"))
+    # 72 x 72 x 160 lattice points fill the 0.144 x 0.144 x 0.32 m column
+    assert big.particle_spacing_m == pytest.approx(0.002)
+    assert big.bodies[0].shape is Shape.BOX
+
+
+def test_cylinder_is_round():
+    scene = load_scene(builtin_scene_path("cylinder_small"))
+    ps = seed_particles(scene)
+    r = ((ps.x[:, 0] - 0.24) ** 2 + (ps.x[:, 1] - 0.24) ** 2) ** 0.5
+    assert r.max() <= 0.06
+    assert r.max() > 0.05
+
+
+@pytest.mark.parametrize("old,new,key", [
+    ("density_kg_m3 = 1800.0", "density_kg_m3 = -1.0", "material.density_kg_m3"),
+    ("poisson_ratio = 0.3", "poisson_ratio = 0.5", "material.poisson_ratio"),
+    ("friction_angle_deg = 30.0", "friction_angle_deg = 95.0", "material.friction_angle_deg"),
+    ("friction_angle_deg = 30.0", "friction_angle = 30.0", "material.friction_angle"),
+    ('shape = "box"', 'shape = "sphere"', "body[0].shape"),
+    ("cell_size_m = 0.02", "cell_size_m = 0.03", "domain.size_m"),
+    ("cell_size_m = 0.02", 'cell_size_m = "fine"', "domain.cell_size_m"),
+    ("duration_s = 0.2", "duration_s = 0.0", "time.duration_s"),
+    ("cfl = 0.3", "cfl = 0.9", "time.cfl"),
+    ("per_cell_per_axis = 2", "per_cell_per_axis = 2.5", "particles.per_cell_per_axis"),
+    ("hi_m = [0.1, 0.04, 0.1]", "hi_m = [0.5, 0.04, 0.1]", "body[0].hi_m"),
+    ("y_min = 0.0", "y_min = -0.1", "boundary.y_min"),
+])
+def test_scene_error_names_key(old, new, key):
+    text = channel_column_toml(ColumnSpec())
+    assert old in text
+    with pytest.raises(SceneError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        loads_scene(text.replace(old, new))
+
+
+def test_scene_error_is_value_error_and_missing_table():
+    with pytest.raises(ValueError, match="domain"):
+        loads_scene('name = "x"\n')
+    with pytest.raises(SceneError, match="invalid TOML"):
+        loads_scene("[domain\n")
+    with pytest.raises(SceneError, match="cannot read"):
+        load_scene("/nonexistent/scene.toml")

@@ -1,0 +1,92 @@
+"""VTK's camera model: view and projection matrices, pixel projection, primary rays.
+
+Conventions follow vtkCamera: the view angle is the full vertical angle in degrees; with
+parallel projection, parallel_scale is half the view height in m. Image pixels: x to the
+right, y down (row 0 at the top), pixel centers at (i + 0.5, j + 0.5).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.spec import Camera
+
+
+@dataclass(frozen=True)
+class CameraBasis:
+    """Orthonormal camera frame in world coordinates (m)."""
+
+    position: np.ndarray  # [3]
+    right: np.ndarray  # [3], image +x
+    up: np.ndarray  # [3], image +y (orthogonalized view up)
+    forward: np.ndarray  # [3], from position toward the focal point
+    distance: float  # position to focal point, m
+
+
+def basis(camera: Camera) -> CameraBasis:
+    position = np.asarray(camera.position, dtype=np.float64)
+    forward = np.asarray(camera.focal_point, dtype=np.float64) - position
+    distance = float(np.linalg.norm(forward))
+    forward /= distance
+    right = np.cross(forward, np.asarray(camera.view_up, dtype=np.float64))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    return CameraBasis(position, right, up, forward, distance)
+
+
+def view_matrix(camera: Camera) -> np.ndarray:
+    """World to camera coordinates [4, 4] (camera looks down -z, +y up)."""
+    b = basis(camera)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = b.right, b.up, -b.forward
+    m[:3, 3] = -m[:3, :3] @ b.position
+    return m
+
+
+def projection_matrix(camera: Camera, aspect: float, near: float, far: float) -> np.ndarray:
+    """Camera to clip coordinates [4, 4], OpenGL/VTK convention (NDC z in [-1, 1])."""
+    m = np.zeros((4, 4))
+    if camera.parallel_projection:
+        s = camera.parallel_scale_m
+        m[0, 0], m[1, 1] = 1.0 / (s * aspect), 1.0 / s
+        m[2, 2], m[2, 3] = -2.0 / (far - near), -(far + near) / (far - near)
+        m[3, 3] = 1.0
+    else:
+        f = 1.0 / math.tan(math.radians(camera.view_angle_deg) / 2.0)
+        m[0, 0], m[1, 1] = f / aspect, f
+        m[2, 2], m[2, 3] = -(far + near) / (far - near), -2.0 * far * near / (far - near)
+        m[3, 2] = -1.0
+    return m
+
+
+def project(points: np.ndarray, camera: Camera, width: int, height: int,
+            near: float = 0.01, far: float = 1000.0) -> np.ndarray:
+    """Pixel coordinates [n, 2] (x right, y down, px) of world points [n, 3] (m)."""
+    pv = projection_matrix(camera, width / height, near, far) @ view_matrix(camera)
+    h = np.c_[points, np.ones(len(points))] @ pv.T
+    ndc = h[:, :2] / h[:, 3:4]
+    return np.c_[(ndc[:, 0] + 1.0) * 0.5 * width, (1.0 - ndc[:, 1]) * 0.5 * height]
+
+
+def primary_rays(camera: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins and unit directions [height * width, 3] through pixel centers, row-major
+    from the top-left pixel."""
+    b = basis(camera)
+    aspect = width / height
+    sx = (2.0 * (np.arange(width) + 0.5) / width - 1.0)  # NDC x of column centers
+    sy = (1.0 - 2.0 * (np.arange(height) + 0.5) / height)  # NDC y of row centers
+    gx, gy = np.meshgrid(sx, sy)  # [h, w]
+    gx, gy = gx.reshape(-1, 1), gy.reshape(-1, 1)
+    if camera.parallel_projection:
+        s = camera.parallel_scale_m
+        origins = b.position + gx * (s * aspect) * b.right + gy * s * b.up
+        directions = np.broadcast_to(b.forward, origins.shape).copy()
+    else:
+        t = math.tan(math.radians(camera.view_angle_deg) / 2.0)
+        d = b.forward + gx * (t * aspect) * b.right + gy * t * b.up
+        directions = d / np.linalg.norm(d, axis=1, keepdims=True)
+        origins = np.broadcast_to(b.position, directions.shape).copy()
+    return origins, directions

@@ -1,0 +1,128 @@
+"""Colormaps as ParaView presets (RGBPoints + color space), rescaled to a value range.
+
+Interpolation is VTK's vtkColorTransferFunction (RGB, HSV, Lab, Diverging/Msh), the same
+code ParaView uses, sampled into a lookup table once per preset. Built-in presets: ParaView's
+default "Cool to Warm", matplotlib's perceptual maps under ParaView's names, and grayscale;
+any ParaView preset JSON file (one preset or a list) can be loaded.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
+
+from protocol.errors import SpecError
+
+LUT_SIZE = 1024
+_SPACES = {"RGB": "SetColorSpaceToRGB", "HSV": "SetColorSpaceToHSV", "Lab": "SetColorSpaceToLab",
+           "Lab/CIEDE2000": "SetColorSpaceToLabCIEDE2000", "Diverging": "SetColorSpaceToDiverging",
+           "Step": "SetColorSpaceToStep"}
+
+
+@dataclass(frozen=True)
+class Colormap:
+    name: str
+    color_space: str
+    rgb_points: tuple[float, ...]  # x0, r0, g0, b0, x1, ... (x in any units, rescaled)
+    nan_color: tuple[float, float, float] = (1.0, 1.0, 0.0)
+    _lut: list = field(default_factory=list, compare=False, repr=False)
+
+    def lut(self) -> np.ndarray:
+        """[LUT_SIZE, 3] float RGB in [0, 1] over the preset's own x range."""
+        if not self._lut:
+            f = vtkColorTransferFunction()
+            getattr(f, _SPACES[self.color_space])()
+            pts = np.asarray(self.rgb_points, dtype=np.float64).reshape(-1, 4)
+            for x, r, g, b in pts:
+                f.AddRGBPoint(x, r, g, b)
+            xs = np.linspace(pts[0, 0], pts[-1, 0], LUT_SIZE)
+            self._lut.append(np.array([f.GetColor(x) for x in xs]))
+        return self._lut[0]
+
+    def map(self, values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
+        """RGB [n, 3] float in [0, 1] of values [n] rescaled from [vmin, vmax]; values outside
+        are clamped to the end colors, NaN gets nan_color."""
+        lut = self.lut()
+        scale = (LUT_SIZE - 1) / (vmax - vmin) if vmax > vmin else 0.0
+        idx = np.clip((np.nan_to_num(values, nan=vmin) - vmin) * scale + 0.5, 0, LUT_SIZE - 1)
+        rgb = lut[idx.astype(np.int64)]
+        rgb[np.isnan(values)] = self.nan_color
+        return rgb
+
+
+def from_paraview(obj: dict, where: str = "preset") -> Colormap:
+    """A Colormap from one ParaView preset object (as in ParaView's exported JSON)."""
+    if not isinstance(obj, dict) or "RGBPoints" not in obj:
+        raise SpecError(f"{where}: a ParaView color preset needs RGBPoints")
+    pts = obj["RGBPoints"]
+    if (not isinstance(pts, list) or len(pts) < 8 or len(pts) % 4
+            or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in pts)):
+        raise SpecError(f"{where}.RGBPoints: expected 4k finite numbers (x, r, g, b), k >= 2")
+    xs = pts[0::4]
+    if any(b < a for a, b in zip(xs, xs[1:], strict=False)) or xs[-1] <= xs[0]:
+        raise SpecError(f"{where}.RGBPoints: x values must increase")
+    space = obj.get("ColorSpace", "RGB")
+    if space not in _SPACES:
+        raise SpecError(f"{where}.ColorSpace: {space!r} is not one of {sorted(_SPACES)}")
+    nan = obj.get("NanColor", [1.0, 1.0, 0.0])
+    return Colormap(str(obj.get("Name", "custom")), space, tuple(float(v) for v in pts),
+                    tuple(float(v) for v in nan[:3]))
+
+
+def to_paraview(cmap: Colormap, vmin: float | None = None, vmax: float | None = None) -> dict:
+    """ParaView preset JSON of a colormap, x rescaled to [vmin, vmax] when given."""
+    pts = np.asarray(cmap.rgb_points, dtype=np.float64).reshape(-1, 4).copy()
+    if vmin is not None and vmax is not None:
+        x0, x1 = pts[0, 0], pts[-1, 0]
+        pts[:, 0] = vmin + (pts[:, 0] - x0) * (vmax - vmin) / (x1 - x0)
+    return {"Name": cmap.name, "ColorSpace": cmap.color_space,
+            "RGBPoints": pts.reshape(-1).tolist(), "NanColor": list(cmap.nan_color)}
+
+
+def load_presets(path: str | Path) -> dict[str, Colormap]:
+    """Presets of a ParaView JSON file (one preset object or a list of them)."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SpecError(f"{path}: cannot read a ParaView preset file ({exc})") from None
+    items = obj if isinstance(obj, list) else [obj]
+    maps = [from_paraview(o, f"{path}[{i}]") for i, o in enumerate(items)]
+    return {m.name: m for m in maps}
+
+
+def _matplotlib(name: str, paraview_name: str, samples: int = 256) -> Colormap:
+    from matplotlib import colormaps
+
+    cmap = colormaps[name]
+    xs = np.linspace(0.0, 1.0, samples)
+    pts = np.c_[xs, cmap(xs)[:, :3]].reshape(-1)
+    return Colormap(paraview_name, "RGB", tuple(pts.tolist()), (1.0, 0.0, 0.0))
+
+
+@cache
+def builtin_presets() -> dict[str, Colormap]:
+    maps = [
+        Colormap("Cool to Warm", "Diverging",
+                 (0.0, 0.231373, 0.298039, 0.752941, 0.5, 0.865003, 0.865003, 0.865003,
+                  1.0, 0.705882, 0.0156863, 0.14902), (1.0, 1.0, 0.0)),
+        Colormap("Grayscale", "RGB", (0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0), (1.0, 0.0, 0.0)),
+        _matplotlib("viridis", "Viridis (matplotlib)"),
+        _matplotlib("plasma", "Plasma (matplotlib)"),
+        _matplotlib("inferno", "Inferno (matplotlib)"),
+        _matplotlib("magma", "Magma (matplotlib)"),
+        _matplotlib("turbo", "Turbo"),
+    ]
+    return {m.name: m for m in maps}
+
+
+def preset(name: str) -> Colormap:
+    """A built-in preset by its ParaView name."""
+    presets = builtin_presets()
+    if name not in presets:
+        raise SpecError(f"colormap {name!r} is not a built-in preset; known: {sorted(presets)}")
+    return presets[name]

@@ -1,0 +1,57 @@
+"""Colormaps: ParaView preset semantics, rescaling, NaN, JSON round trip."""
+
+import json
+
+import numpy as np
+import pytest
+
+from protocol import SpecError
+from render_server.colormap import builtin_presets, from_paraview, load_presets, preset, to_paraview
+
+
+def test_cool_to_warm_matches_paraview_control_points():
+    cmap = preset("Cool to Warm")
+    rgb = cmap.map(np.array([0.0, 0.19, 0.38]), 0.0, 0.38)  # rescaled to 0-0.38 m
+    np.testing.assert_allclose(rgb[0], [0.231373, 0.298039, 0.752941], atol=2e-3)
+    np.testing.assert_allclose(rgb[1], [0.865003, 0.865003, 0.865003], atol=2e-3)
+    np.testing.assert_allclose(rgb[2], [0.705882, 0.0156863, 0.14902], atol=2e-3)
+
+
+def test_clamping_and_nan():
+    cmap = preset("Grayscale")
+    rgb = cmap.map(np.array([-5.0, 0.5, 9.0, np.nan]), 0.0, 1.0)
+    np.testing.assert_allclose(rgb[:3, 0], [0.0, 0.5, 1.0], atol=1e-3)
+    np.testing.assert_allclose(rgb[3], cmap.nan_color)
+
+
+def test_viridis_ends():
+    rgb = preset("Viridis (matplotlib)").map(np.array([0.0, 1.0]), 0.0, 1.0)
+    np.testing.assert_allclose(rgb, [[0.267004, 0.004874, 0.329415], [0.993248, 0.906157, 0.143936]],
+                               atol=1e-3)
+
+
+def test_paraview_json_round_trip(tmp_path):
+    data = [to_paraview(m, 0.0, 0.38) for m in builtin_presets().values()]
+    (tmp_path / "presets.json").write_text(json.dumps(data))
+    loaded = load_presets(tmp_path / "presets.json")
+    assert set(loaded) == set(builtin_presets())
+    values = np.linspace(0.0, 0.38, 50)
+    for name, cmap in builtin_presets().items():
+        np.testing.assert_allclose(loaded[name].map(values, 0.0, 0.38), cmap.map(values, 0.0, 0.38),
+                                   atol=2e-3)
+
+
+@pytest.mark.parametrize("obj,message", [
+    ({"Name": "x"}, "needs RGBPoints"),
+    ({"RGBPoints": [0, 0, 0, 0, 1, 1, 1]}, "4k finite numbers"),
+    ({"RGBPoints": [1, 0, 0, 0, 0, 1, 1, 1]}, "x values must increase"),
+    ({"RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1], "ColorSpace": "CMYK"}, "ColorSpace"),
+])
+def test_bad_presets(obj, message):
+    with pytest.raises(SpecError, match=message):
+        from_paraview(obj)
+
+
+def test_unknown_builtin_names_the_known_ones():
+    with pytest.raises(SpecError, match="Cool to Warm"):
+        preset("Jet (made up)")

@@ -40,10 +40,10 @@ def _ray_box(o, d, lo, hi):
 
 
 @njit(cache=True, inline="always")
-def _hit_sphere(o, d, c, r2, t_min):
+def _hit_sphere(o, d, cx, cy, cz, r2, t_min):
     """Distance to the first intersection at or beyond t_min of a unit-direction ray with a
-    sphere (center c, squared radius r2), or inf."""
-    ox, oy, oz = o[0] - c[0], o[1] - c[1], o[2] - c[2]
+    sphere (center cx, cy, cz; squared radius r2), or inf."""
+    ox, oy, oz = o[0] - cx, o[1] - cy, o[2] - cz
     b = ox * d[0] + oy * d[1] + oz * d[2]
     disc = b * b - (ox * ox + oy * oy + oz * oz - r2)
     if disc < 0.0:
@@ -55,6 +55,18 @@ def _hit_sphere(o, d, c, r2, t_min):
     return t if t >= t_min else math.inf
 
 
+@njit(cache=True, inline="always")
+def _dda_axis(o, d, t_enter, lo, h, n):
+    """Start cell, step, distance to the next cell boundary and per-cell distance along one
+    axis of a DDA walk through n cells of size h from lo."""
+    c = min(max(int(math.floor((o + d * t_enter - lo) / h)), 0), n - 1)
+    if d > 0.0:
+        return c, 1, (lo + (c + 1) * h - o) / d, h / d
+    if d < 0.0:
+        return c, -1, (lo + c * h - o) / d, -h / d
+    return c, 0, math.inf, math.inf
+
+
 @njit(cache=True)
 def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2, boxes,
                  dims, cell_size, cell_offset, cell_start, ref_offset, items, skip):
@@ -62,48 +74,36 @@ def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2
     nx, ny, nz = dims[b, 0], dims[b, 1], dims[b, 2]
     base = cell_offset[b] + b
     refs = ref_offset[b]
-    cell = np.empty(3, np.int64)
-    step = np.empty(3, np.int64)
-    t_next = np.empty(3)
-    t_delta = np.empty(3)
-    n = (nx, ny, nz)
-    for a in range(3):
-        x = o[a] + d[a] * t_enter
-        c = int(math.floor((x - boxes[b, 0, a]) / cell_size[b, a]))
-        cell[a] = min(max(c, 0), n[a] - 1)
-        if d[a] > 0.0:
-            step[a] = 1
-            t_next[a] = (boxes[b, 0, a] + (cell[a] + 1) * cell_size[b, a] - o[a]) / d[a]
-            t_delta[a] = cell_size[b, a] / d[a]
-        elif d[a] < 0.0:
-            step[a] = -1
-            t_next[a] = (boxes[b, 0, a] + cell[a] * cell_size[b, a] - o[a]) / d[a]
-            t_delta[a] = -cell_size[b, a] / d[a]
-        else:
-            step[a] = 0
-            t_next[a] = math.inf
-            t_delta[a] = math.inf
+    cx, sx, tx, dtx = _dda_axis(o[0], d[0], t_enter, boxes[b, 0, 0], cell_size[b, 0], nx)
+    cy, sy, ty, dty = _dda_axis(o[1], d[1], t_enter, boxes[b, 0, 1], cell_size[b, 1], ny)
+    cz, sz, tz, dtz = _dda_axis(o[2], d[2], t_enter, boxes[b, 0, 2], cell_size[b, 2], nz)
     while True:
-        c = (cell[0] * ny + cell[1]) * nz + cell[2]
-        for k in range(cell_start[base + c], cell_start[base + c + 1]):
+        c = base + (cx * ny + cy) * nz + cz
+        for k in range(cell_start[c], cell_start[c + 1]):
             p = items[refs + k]
             if p == skip:
                 continue
-            t = _hit_sphere(o, d, positions[p], r2, t_min)
+            t = _hit_sphere(o, d, positions[p, 0], positions[p, 1], positions[p, 2], r2, t_min)
             if t < best_t or (t == best_t and p < best_id):
                 best_t, best_id = t, p
-        a = 0
-        if t_next[1] < t_next[a]:
-            a = 1
-        if t_next[2] < t_next[a]:
-            a = 2
-        t_cell_exit = min(t_next[a], t_exit)
+        t_cell_exit = min(tx, ty, tz, t_exit)
         if best_t <= t_cell_exit or t_cell_exit >= t_exit:
             return best_t, best_id
-        cell[a] += step[a]
-        if cell[a] < 0 or cell[a] >= n[a]:
-            return best_t, best_id
-        t_next[a] += t_delta[a]
+        if tx <= ty and tx <= tz:
+            cx += sx
+            tx += dtx
+            if cx < 0 or cx >= nx:
+                return best_t, best_id
+        elif ty <= tz:
+            cy += sy
+            ty += dty
+            if cy < 0 or cy >= ny:
+                return best_t, best_id
+        else:
+            cz += sz
+            tz += dtz
+            if cz < 0 or cz >= nz:
+                return best_t, best_id
 
 
 @njit(cache=True)

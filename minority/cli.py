@@ -66,6 +66,43 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from protocol.errors import SpecError
+    from protocol.session import Role, open_session, options_from_args
+    from protocol.spec import Spec
+    from render_server.daemon import RenderServer, ServerOptions
+
+    try:
+        spec = Spec.load(args.spec)
+    except (SpecError, OSError) as exc:
+        print(f"minority serve: error: {exc}", file=sys.stderr)
+        return 1
+    record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
+    if record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        session = open_session(options_from_args(args), Role.SERVER)
+    except zenoh.ZError as exc:
+        print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
+                                                 shadows=args.shadows))
+    print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to {args.out}/{spec.run}/"
+          + (f", log {record}" if record else ""), file=sys.stderr, flush=True)
+    try:
+        stop.wait()
+    finally:
+        server.close()
+        session.close()
+    print(f"stopped: {server.summary()}", file=sys.stderr)
+    return 0
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
     from sim.driver import SimulationError
     from sim.runner import run_scene
@@ -96,10 +133,23 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("serve", help="run the render server daemon",
-                       description="Run the render server: serve the spec, receive chunks, "
-                                   "ray-trace the scheduled views, log to MCAP.")
+                       description="Run the render server until SIGINT/SIGTERM: serve the spec "
+                                   "on minority/{run}/spec, receive chunks, assemble steps, "
+                                   "ray-trace the scheduled views to DIR/{run}/{view}/"
+                                   "{step:06d}.png, publish frames and timing, record every "
+                                   "message of the run to MCAP.")
+    p.add_argument("--spec", type=Path, required=True, help="oracle spec JSON file")
+    p.add_argument("--out", type=Path, default=Path("frames"), metavar="DIR",
+                   help="frame directory (default: frames)")
+    p.add_argument("--record", type=Path, metavar="FILE.mcap",
+                   help="MCAP log of the run (default: DIR/{run}.mcap)")
+    p.add_argument("--no-record", action="store_true", help="do not write an MCAP log")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="render a step with what arrived S seconds after its first chunk "
+                        "(default 5)")
+    p.add_argument("--shadows", action="store_true", help="cast shadow rays (slower)")
     _add_network(p)
-    p.set_defaults(func=_not_built("serve"))
+    p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("sim", help="run the MPM simulation of a scene",
                        description="Run the 3D MLS-MPM simulation (Drucker-Prager sand) of a "

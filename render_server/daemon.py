@@ -1,0 +1,230 @@
+"""The render server daemon: serve the spec, receive chunks, assemble steps, render the
+scheduled views, write PNG frames, publish frames and timing, record everything.
+
+Threads: zenoh's callbacks only enqueue (bounded inbox); a receive thread decodes chunks and
+assembles steps; a render thread takes the newest assembled step (a step replaced before it
+was rendered is counted as skipped), so the simulation is never blocked and memory stays
+bounded whatever the senders do.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from protocol import keys
+from protocol.errors import ProtocolError
+from protocol.log import Recorder
+from protocol.messages import Chunk, Event, EventKind, Frame, Timing, decode_as
+from protocol.session import CONTROL_QOS, FRAME_QOS, Inbox, put
+from protocol.spec import Spec
+from render_server.assemble import (
+    DEFAULT_MAX_PENDING,
+    DEFAULT_TIMEOUT_S,
+    AssembledStep,
+    StepAssembler,
+)
+from render_server.render import encode_png, field_values, prepare, render
+
+RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
+ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
+
+
+@dataclass
+class ServerOptions:
+    spec: Spec
+    out_dir: Path  # frames go to out_dir/{run}/{view}/{step:06d}.png
+    record: Path | None = None  # MCAP log of every message of the run
+    timeout_s: float = DEFAULT_TIMEOUT_S
+    max_pending: int = DEFAULT_MAX_PENDING
+    inbox_capacity: int = 256
+    shadows: bool = False
+    write_png: bool = True
+
+
+@dataclass
+class ServerStats:
+    chunks: int = 0
+    rejected: int = 0  # malformed chunks
+    steps_rendered: int = 0
+    steps_skipped: int = 0  # replaced by a newer step before rendering
+    frames: int = 0
+    view_errors: int = 0  # views that could not be rendered (e.g. a missing field)
+    last_error: str = ""
+    errors_unreported: int = field(default=0, repr=False)
+
+
+class LatestStep:
+    """A one-slot mailbox: the newest step wins; replaced steps are counted."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._step: AssembledStep | None = None
+        self.replaced = 0
+
+    def put(self, step: AssembledStep) -> None:
+        with self._cond:
+            if self._step is not None:
+                self.replaced += 1
+            self._step = step
+            self._cond.notify()
+
+    def take(self, timeout: float) -> AssembledStep | None:
+        with self._cond:
+            if self._step is None:
+                self._cond.wait(timeout)
+            step, self._step = self._step, None
+            return step
+
+
+class RenderServer:
+    def __init__(self, session: zenoh.Session, options: ServerOptions):
+        self.session = session
+        self.options = options
+        self.spec = options.spec
+        self.run = options.spec.run
+        self.stats = ServerStats()
+        self._lock = threading.Lock()
+        self._assembler = StepAssembler(options.timeout_s, options.max_pending)
+        self._latest = LatestStep()
+        self._stop = threading.Event()
+        self._last_error_event = 0.0
+        self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
+        self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity)
+        self._queryable = session.declare_queryable(keys.spec(self.run), self._on_query)
+        self._events = session.declare_subscriber(keys.event(self.run), self._on_event)
+        self._tokens = session.liveliness().declare_subscriber(keys.rank_tokens(self.run),
+                                                               self._on_token, history=True)
+        self._threads = [threading.Thread(target=self._receive_loop, name="minority-receive"),
+                         threading.Thread(target=self._render_loop, name="minority-render")]
+        for t in self._threads:
+            t.start()
+        put(session, keys.spec(self.run), self.spec.encode(), CONTROL_QOS)
+        self._event(EventKind.RUN_START, f"render server up, {len(self.spec.views)} views")
+
+    # --- zenoh callbacks (enqueue or small work only) ---------------------------------
+    def _on_query(self, query: zenoh.Query) -> None:
+        query.reply(keys.spec(self.run), bytes(self.spec.encode()))
+
+    def _on_event(self, sample: zenoh.Sample) -> None:
+        try:
+            event = decode_as(sample.payload.to_bytes(), Event)
+        except ProtocolError as exc:
+            self._error(f"malformed event: {exc}")
+            return
+        if event.kind == EventKind.RANK_DONE and event.rank >= 0:
+            self._rank_gone(event.rank)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            parsed = keys.parse(str(sample.key_expr))
+            if parsed and parsed.rest and parsed.rest[0].isdigit():
+                self._rank_gone(int(parsed.rest[0]))
+
+    def _rank_gone(self, rank: int) -> None:
+        with self._lock:
+            for step in self._assembler.rank_gone(rank, time.time_ns()):
+                self._latest.put(step)
+
+    # --- threads --------------------------------------------------------------------
+    def _receive_loop(self) -> None:
+        while not self._stop.is_set():
+            item = self._inbox.get(timeout=RECEIVE_POLL_S)
+            with self._lock:
+                done = self._assembler.expire(time.time_ns())
+                if item is not None:
+                    try:
+                        chunk = decode_as(item.payload, Chunk)
+                    except ProtocolError as exc:
+                        self.stats.rejected += 1
+                        self._error(f"rejected chunk on {item.key}: {exc}")
+                    else:
+                        self.stats.chunks += 1
+                        done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
+            for step in done:
+                self._latest.put(step)
+
+    def _render_loop(self) -> None:
+        while not self._stop.is_set():
+            step = self._latest.take(timeout=RECEIVE_POLL_S)
+            if step is not None:
+                self.render_step(step)
+        self.stats.steps_skipped = self._latest.replaced
+
+    def render_step(self, step: AssembledStep) -> None:
+        """Render every view the schedule asks for at this step; publish frames and timing."""
+        views = self.spec.wants(step.step, step.time_s)
+        if not views or len(step.positions) == 0:
+            return
+        radius = 0.5 * step.spacing_m
+        t0 = time.perf_counter()
+        scene = prepare(step.positions, radius)
+        setup_s = time.perf_counter() - t0
+        for view in views:
+            if view.field not in step.fields:
+                self.stats.view_errors += 1
+                self._error(f"view {view.name!r} needs field {view.field!r}; step {step.step} "
+                            f"has {sorted(step.fields)}")
+                continue
+            t1 = time.perf_counter()
+            image = render(scene, field_values(step.fields[view.field]), view,
+                           self.options.shadows)
+            png = encode_png(image)
+            render_s = time.perf_counter() - t1
+            if self.options.write_png:
+                path = self.options.out_dir / self.run / view.name / f"{step.step:06d}.png"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(png)
+            frame = Frame(self.run, view.name, step.step, step.time_s, view.width, view.height, png)
+            put(self.session, keys.frame(self.run, view.name), frame.encode(), FRAME_QOS)
+            timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s, setup_s,
+                            render_s, step.nbytes, len(step.positions), step.ranks_expected,
+                            step.ranks_received, step.incomplete)
+            put(self.session, keys.timing(self.run), timing.encode(), CONTROL_QOS)
+            self.stats.frames += 1
+        self.stats.steps_rendered += 1
+
+    # --- events and shutdown --------------------------------------------------------
+    def _event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
+        event = Event(self.run, kind, -1, message[:4000], detail or {})
+        put(self.session, keys.event(self.run), event.encode(), CONTROL_QOS)
+
+    def _error(self, message: str) -> None:
+        """Log an error and publish it as an event, at most one per interval."""
+        self.stats.last_error = message
+        self.stats.errors_unreported += 1
+        now = time.monotonic()
+        if now - self._last_error_event >= ERROR_EVENT_INTERVAL_S:
+            print(f"minority serve: {message}", file=sys.stderr, flush=True)
+            self._event(EventKind.ERROR, message, {"errors": self.stats.errors_unreported})
+            self.stats.errors_unreported = 0
+            self._last_error_event = now
+
+    def summary(self) -> dict:
+        a = self._assembler.stats
+        return {"chunks": self.stats.chunks, "rejected": self.stats.rejected,
+                "steps_rendered": self.stats.steps_rendered,
+                "steps_skipped": self._latest.replaced, "frames": self.stats.frames,
+                "view_errors": self.stats.view_errors, "duplicates": a.duplicates,
+                "late": a.late, "timed_out": a.timed_out, "evicted": a.evicted,
+                "inbox_dropped": self._inbox.dropped}
+
+    def close(self) -> None:
+        """Stop, render nothing more, publish run end, close the log (idempotent)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        for t in self._threads:
+            t.join()
+        self._inbox.close()
+        self._tokens.undeclare()
+        self._events.undeclare()
+        self._queryable.undeclare()
+        self._event(EventKind.RUN_END, "render server stopping", self.summary())
+        if self.recorder is not None:
+            self.recorder.close()

@@ -1,0 +1,62 @@
+"""Step assembly: complete, incomplete by death or timeout, bounded, duplicates and late."""
+
+import numpy as np
+from conftest import make_chunk
+
+from render_server.assemble import StepAssembler
+
+MS = 1_000_000
+
+
+def chunk(step, rank, ranks=3, n=10):
+    return make_chunk(n=n, step=step, rank=rank, ranks=ranks, seed=step * 10 + rank)
+
+
+def test_complete_when_every_rank_arrived():
+    a = StepAssembler()
+    assert a.add(chunk(20, 1), 0, 100) == []
+    assert a.add(chunk(20, 0), 1 * MS, 100) == []
+    (done,) = a.add(chunk(20, 2), 3 * MS, 100)
+    assert done.step == 20 and not done.incomplete and done.ranks_received == 3
+    assert done.positions.shape == (30, 3) and done.nbytes == 300
+    assert abs(done.receive_s - 0.003) < 1e-12
+    np.testing.assert_array_equal(done.positions[:10], chunk(20, 0).positions)  # rank order
+    assert set(done.fields) == {"displacement", "velocity_magnitude", "material"}
+
+
+def test_dead_rank_releases_incomplete_step():
+    a = StepAssembler()
+    a.add(chunk(40, 0), 0, 1)
+    a.add(chunk(40, 1), 0, 1)
+    (done,) = a.rank_gone(2, 5 * MS)
+    assert done.incomplete and done.ranks_received == 2
+    (later,) = a.add(chunk(60, 0), 6 * MS, 1) + a.add(chunk(60, 1), 6 * MS, 1)
+    assert later.step == 60 and later.incomplete  # rank 2 is gone for good
+
+
+def test_timeout_releases_incomplete():
+    a = StepAssembler(timeout_s=1.0)
+    a.add(chunk(20, 0), 0, 1)
+    assert a.expire(999 * MS) == []
+    (done,) = a.expire(1000 * MS)
+    assert done.incomplete and a.stats.timed_out == 1
+
+
+def test_bounded_pending_and_late_and_duplicates():
+    a = StepAssembler(max_pending=2)
+    a.add(chunk(1, 0), 0, 1)
+    a.add(chunk(2, 0), 0, 1)
+    (evicted,) = a.add(chunk(3, 0), 0, 1)
+    assert evicted.step == 1 and evicted.incomplete and a.stats.evicted == 1
+    assert a.add(chunk(1, 1), 0, 1) == [] and a.stats.late == 1
+    assert a.add(chunk(2, 0), 0, 1) == [] and a.stats.duplicates == 1
+    assert len(a.pending) == 2
+
+
+def test_fields_missing_on_one_rank_are_left_out():
+    a = StepAssembler()
+    c0, c1 = chunk(5, 0, ranks=2), chunk(5, 1, ranks=2)
+    del c1.fields["material"]
+    a.add(c0, 0, 1)
+    (done,) = a.add(c1, 0, 1)
+    assert "material" not in done.fields and done.fields["displacement"].shape == (20, 3)

@@ -1,0 +1,126 @@
+"""The render server over loopback: spec served, steps assembled and rendered, frames and
+timing published and logged; malformed and degenerate input counted, never fatal; a rank
+killed mid-step releases the step as incomplete. Waits are on message counts."""
+
+import numpy as np
+import pytest
+from conftest import make_chunk
+from test_loopback import wait_until
+
+from protocol import Frame, Spec, Timing, decode_as, keys
+from protocol.log import read_log
+from protocol.session import LOSSLESS_QOS, Inbox, put
+from render_server.daemon import RenderServer, ServerOptions
+
+RUN = "test-run"
+
+
+def spec() -> Spec:
+    return Spec.from_dict({"version": 1, "run": RUN, "views": [{
+        "name": "side", "camera": {"position": [0.5, -2.0, 0.5], "focal_point": [0.5, 0.5, 0.5]},
+        "width": 64, "height": 48, "field": "displacement", "range": [0, 1], "every_steps": 20}]})
+
+
+@pytest.fixture
+def daemon(server, tmp_path):
+    d = RenderServer(server, ServerOptions(spec(), tmp_path / "frames", tmp_path / "run.mcap",
+                                           timeout_s=30.0))
+    yield d
+    d.close()
+
+
+def send_step(session, step, ranks=2, n=50, **kw):
+    for rank in range(ranks):
+        chunk = make_chunk(n=n, step=step, rank=rank, ranks=ranks, seed=step + rank, run=RUN, **kw)
+        put(session, keys.chunk(RUN, step, rank), chunk.encode(), LOSSLESS_QOS)
+
+
+def test_spec_frames_timing_and_log(daemon, client_factory, tmp_path):
+    sim = client_factory()
+    replies = list(sim.get(keys.spec(RUN), timeout=10))
+    assert decode_as(replies[0].ok.payload.to_bytes(), Spec) == spec()
+    frames, timing = Inbox(sim, keys.frames(RUN)), Inbox(sim, keys.timing(RUN))
+    for k, step in enumerate([0, 20, 40]):
+        send_step(sim, step)
+        assert wait_until(lambda k=k: frames.received == k + 1)
+    send_step(sim, 50)  # not scheduled: assembled, not rendered
+    assert wait_until(lambda: timing.received == 3)
+    got = [decode_as(frames.get(1).payload, Frame) for _ in range(3)]
+    assert [f.step for f in got] == [0, 20, 40] and all(f.view == "side" for f in got)
+    t = decode_as(timing.get(1).payload, Timing)
+    assert t.particles == 100 and t.ranks_received == 2 and not t.incomplete and t.render_s > 0
+    assert sorted(p.name for p in (tmp_path / "frames" / RUN / "side").iterdir()) == \
+        ["000000.png", "000020.png", "000040.png"]
+    assert wait_until(lambda: daemon.stats.chunks == 8)
+    daemon.close()
+    topics = [r.topic for r in read_log(tmp_path / "run.mcap")]
+    assert topics.count(f"minority/{RUN}/chunk") == 8
+    assert topics.count(f"minority/{RUN}/frame/side") == 3
+    assert topics.count(f"minority/{RUN}/timing") == 3
+    events = [r.decode().kind for r in read_log(tmp_path / "run.mcap", [f"minority/{RUN}/event"])]
+    assert events[0] == "run_start" and events[-1] == "run_end"
+
+
+def test_bad_and_degenerate_input_is_survived(daemon, client_factory):
+    sim = client_factory()
+    frames = Inbox(sim, keys.frames(RUN))
+    sim.put(keys.chunk(RUN, 20, 0), b"not a chunk at all")  # a raw, hostile sender
+    nan = make_chunk(n=10, step=20, rank=0, ranks=1, run=RUN)
+    nan.fields["positions"][3] = np.nan
+    put(sim, keys.chunk(RUN, 20, 0), nan.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: daemon.stats.rejected == 2)
+    send_step(sim, 20, ranks=1, n=0)  # zero particles: assembled, nothing to draw
+    send_step(sim, 40, ranks=1, n=1)  # one particle
+    assert wait_until(lambda: frames.received == 1)
+    same = make_chunk(n=30, step=60, rank=0, ranks=1, run=RUN)
+    same.fields["positions"][:] = 0.5  # every particle at one point
+    put(sim, keys.chunk(RUN, 60, 0), same.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: frames.received == 2)
+    assert daemon.stats.steps_rendered == 2 and daemon.stats.rejected == 2
+
+
+def test_rank_killed_mid_step_releases_incomplete_step(daemon, client_factory):
+    sim, doomed = client_factory(), client_factory()
+    timing = Inbox(sim, keys.timing(RUN))
+    token = doomed.liveliness().declare_token(keys.rank_token(RUN, 1))
+    send_step(sim, 20, ranks=2)  # both ranks' chunks: complete
+    assert wait_until(lambda: timing.received == 1)
+    chunk = make_chunk(n=40, step=40, rank=0, ranks=2, run=RUN)
+    put(sim, keys.chunk(RUN, 40, 0), chunk.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: daemon.stats.chunks == 3)
+    del token
+    doomed.close()  # rank 1 dies before sending step 40
+    assert wait_until(lambda: timing.received == 2)
+    t = [decode_as(timing.get(1).payload, Timing) for _ in range(2)]
+    assert not t[0].incomplete and t[1].incomplete and t[1].ranks_received == 1
+    assert t[1].particles == 40
+
+
+def test_minority_serve_runs_until_sigterm(endpoint, tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from protocol.session import NetworkOptions, Role, open_session
+
+    spec().save(tmp_path / "spec.json")
+    proc = subprocess.Popen([sys.executable, "-m", "minority", "serve", "--spec",
+                             str(tmp_path / "spec.json"), "--out", str(tmp_path / "out"),
+                             "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+    sim = None
+    try:
+        sim = open_session(NetworkOptions(connect=[endpoint], connect_timeout_s=30), Role.CLIENT)
+        frames = Inbox(sim, keys.frames(RUN))
+        assert wait_until(lambda: len(list(sim.get(keys.spec(RUN), timeout=1))) > 0)
+        send_step(sim, 20)
+        assert wait_until(lambda: frames.received == 1)
+    finally:
+        if sim is not None:
+            sim.close()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "'frames': 1" in err
+    assert (tmp_path / "out" / RUN / "side" / "000020.png").exists()
+    log = tmp_path / "out" / f"{RUN}.mcap"
+    assert sum(1 for r in read_log(log) if r.topic.endswith("/frame/side")) == 1

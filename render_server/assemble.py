@@ -25,6 +25,7 @@ class PendingStep:
     time_s: float
     ranks: int  # ranks named in the headers
     first_ns: int  # arrival of the first chunk, ns
+    first_sent_ns: int = 0  # earliest sender stamp of the step's chunks, ns (0: none)
     last_ns: int = 0
     chunks: dict[int, Chunk] = field(default_factory=dict)
     nbytes: int = 0
@@ -42,7 +43,7 @@ class AssembledStep:
     ranks_expected: int
     ranks_received: int
     nbytes: int
-    receive_s: float  # first chunk arrival to assembled, s
+    receive_s: float  # earliest send of the step's chunks to assembled, s (see _release)
     incomplete: bool
 
 
@@ -79,6 +80,8 @@ class StepAssembler:
             return []
         p.ranks = max(p.ranks, chunk.ranks)
         p.chunks[chunk.rank] = chunk
+        if chunk.sent_ns > 0:
+            p.first_sent_ns = min(p.first_sent_ns or chunk.sent_ns, chunk.sent_ns)
         p.last_ns = recv_ns
         p.nbytes += nbytes
         done = self._release_complete(recv_ns)
@@ -118,9 +121,12 @@ class StepAssembler:
             names &= set(c.fields)
         names.discard("positions")
         merged = {k: np.concatenate([c.fields[k] for c in chunks]) for k in sorted(names)}
+        # receive time from the senders' stamps (one host, or synchronized clocks); from the
+        # first arrival when a stamp is missing or lies in the future (clock skew)
+        start_ns = p.first_sent_ns if 0 < p.first_sent_ns <= p.first_ns else p.first_ns
         return AssembledStep(
             step=step, time_s=p.time_s,
             positions=np.concatenate([c.positions for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
-            nbytes=p.nbytes, receive_s=(now_ns - p.first_ns) * 1e-9,
+            nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
             incomplete=incomplete or len(chunks) < p.ranks)

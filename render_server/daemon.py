@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from protocol import keys
@@ -82,6 +83,15 @@ class LatestStep:
             return step
 
 
+def warm_up() -> None:
+    """Run every render kernel once on a tiny scene (numba compiles or loads its cache)."""
+    from protocol.spec import Camera, View
+
+    view = View("warm-up", Camera((0.0, -1.0, 0.0), (0.0, 0.0, 0.0)), 8, 8)
+    scene = prepare(np.zeros((2, 3), np.float32), 0.1)
+    render(scene, np.zeros(2), view, shadows=True)
+
+
 class RenderServer:
     def __init__(self, session: zenoh.Session, options: ServerOptions):
         self.session = session
@@ -94,6 +104,7 @@ class RenderServer:
         self._latest = LatestStep()
         self._stop = threading.Event()
         self._last_error_event = 0.0
+        warm_up()  # compile the kernels now, not on the first step
         self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity)
         self._queryable = session.declare_queryable(keys.spec(self.run), self._on_query)

@@ -8,8 +8,10 @@ from render_server.assemble import StepAssembler
 MS = 1_000_000
 
 
-def chunk(step, rank, ranks=3, n=10):
-    return make_chunk(n=n, step=step, rank=rank, ranks=ranks, seed=step * 10 + rank)
+def chunk(step, rank, ranks=3, n=10, sent_ns=0):
+    c = make_chunk(n=n, step=step, rank=rank, ranks=ranks, seed=step * 10 + rank)
+    c.sent_ns = sent_ns
+    return c
 
 
 def test_complete_when_every_rank_arrived():
@@ -60,3 +62,12 @@ def test_fields_missing_on_one_rank_are_left_out():
     a.add(c0, 0, 1)
     (done,) = a.add(c1, 0, 1)
     assert "material" not in done.fields and done.fields["displacement"].shape == (20, 3)
+
+
+def test_receive_time_counts_from_the_earliest_send():
+    a = StepAssembler()
+    a.add(chunk(20, 0, ranks=2, sent_ns=10 * MS), 12 * MS, 1)
+    (done,) = a.add(chunk(20, 1, ranks=2, sent_ns=9 * MS), 15 * MS, 1)
+    assert abs(done.receive_s - 0.006) < 1e-12  # 15 ms - 9 ms
+    (skewed,) = a.add(chunk(40, 0, ranks=1, sent_ns=99 * MS), 20 * MS, 1)  # future stamp: skew
+    assert skewed.receive_s == 0.0  # falls back to the arrival time

@@ -185,8 +185,8 @@ class RenderServer:
             t1 = time.perf_counter()
             image = render(scene, field_values(step.fields[view.field]), view,
                            self.options.shadows)
+            render_s = time.perf_counter() - t1  # image synthesis; PNG encoding is output
             png = encode_png(image)
-            render_s = time.perf_counter() - t1
             if self.options.write_png:
                 path = self.options.out_dir / self.run / view.name / f"{step.step:06d}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)

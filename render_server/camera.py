@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+from numba import njit, prange
 
 from protocol.spec import Camera
 
@@ -71,22 +73,61 @@ def project(points: np.ndarray, camera: Camera, width: int, height: int,
     return np.c_[(ndc[:, 0] + 1.0) * 0.5 * width, (1.0 - ndc[:, 1]) * 0.5 * height]
 
 
+class RayFrame(NamedTuple):
+    """What the ray kernels need of a camera (a NamedTuple, so numba takes it as is)."""
+
+    position: np.ndarray  # [3] m
+    right: np.ndarray  # [3]
+    up: np.ndarray  # [3]
+    forward: np.ndarray  # [3]
+    half_width: float  # perspective: tan(angle/2) * aspect; parallel: scale * aspect (m)
+    half_height: float  # perspective: tan(angle/2); parallel: parallel scale (m)
+    perspective: bool
+
+
+def ray_frame(camera: Camera, width: int, height: int) -> RayFrame:
+    b = basis(camera)
+    aspect = width / height
+    if camera.parallel_projection:
+        hh = camera.parallel_scale_m
+    else:
+        hh = math.tan(math.radians(camera.view_angle_deg) / 2.0)
+    return RayFrame(b.position, b.right, b.up, b.forward, hh * aspect, hh,
+                    not camera.parallel_projection)
+
+
+@njit(cache=True, inline="always")
+def pixel_ray(f, i, j, width, height):
+    """Origin and unit direction (ox, oy, oz, dx, dy, dz) of the ray through the center of
+    pixel column i, row j (row 0 at the top)."""
+    gx = 2.0 * (i + 0.5) / width - 1.0
+    gy = 1.0 - 2.0 * (j + 0.5) / height
+    sx, sy = gx * f.half_width, gy * f.half_height
+    if f.perspective:
+        dx = f.forward[0] + sx * f.right[0] + sy * f.up[0]
+        dy = f.forward[1] + sx * f.right[1] + sy * f.up[1]
+        dz = f.forward[2] + sx * f.right[2] + sy * f.up[2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        return f.position[0], f.position[1], f.position[2], dx / norm, dy / norm, dz / norm
+    return (f.position[0] + sx * f.right[0] + sy * f.up[0],
+            f.position[1] + sx * f.right[1] + sy * f.up[1],
+            f.position[2] + sx * f.right[2] + sy * f.up[2],
+            f.forward[0], f.forward[1], f.forward[2])
+
+
+@njit(parallel=True, cache=True)
+def _rays(f, width, height, origins, dirs):
+    for j in prange(height):
+        for i in range(width):
+            q = j * width + i
+            (origins[q, 0], origins[q, 1], origins[q, 2],
+             dirs[q, 0], dirs[q, 1], dirs[q, 2]) = pixel_ray(f, i, j, width, height)
+
+
 def primary_rays(camera: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Ray origins and unit directions [height * width, 3] through pixel centers, row-major
     from the top-left pixel."""
-    b = basis(camera)
-    aspect = width / height
-    sx = (2.0 * (np.arange(width) + 0.5) / width - 1.0)  # NDC x of column centers
-    sy = (1.0 - 2.0 * (np.arange(height) + 0.5) / height)  # NDC y of row centers
-    gx, gy = np.meshgrid(sx, sy)  # [h, w]
-    gx, gy = gx.reshape(-1, 1), gy.reshape(-1, 1)
-    if camera.parallel_projection:
-        s = camera.parallel_scale_m
-        origins = b.position + gx * (s * aspect) * b.right + gy * s * b.up
-        directions = np.broadcast_to(b.forward, origins.shape).copy()
-    else:
-        t = math.tan(math.radians(camera.view_angle_deg) / 2.0)
-        d = b.forward + gx * (t * aspect) * b.right + gy * t * b.up
-        directions = d / np.linalg.norm(d, axis=1, keepdims=True)
-        origins = np.broadcast_to(b.position, directions.shape).copy()
-    return origins, directions
+    origins = np.empty((width * height, 3))
+    dirs = np.empty((width * height, 3))
+    _rays(ray_frame(camera, width, height), width, height, origins, dirs)
+    return origins, dirs

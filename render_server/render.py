@@ -1,24 +1,28 @@
 """Render one view of one step: repartition, acceleration structures, ray casting, shading.
 
-Lambert plus ambient shading with one directional key light placed relative to the camera,
-optional hard shadows (a shadow ray per lit pixel), background color where no sphere is hit.
+Primary visibility by exact object-order ray casting (`cast`), Lambert plus ambient shading
+with one directional key light placed relative to the camera, optional hard shadows (a
+shadow ray per lit pixel through the bricks' grids), background color where nothing is hit.
 Image: uint8 [height, width, 3], row 0 at the top.
 """
 
 from __future__ import annotations
 
 import io
+import math
 import time
 from dataclasses import dataclass
 
 import numba
 import numpy as np
+from numba import njit, prange
 from PIL import Image
 
 from protocol.spec import View
 from render_server.accel import BrickGrids, build_grids
 from render_server.bricks import Bricks, repartition
-from render_server.camera import basis, primary_rays
+from render_server.camera import basis, pixel_ray, primary_rays, ray_frame
+from render_server.cast import cast
 from render_server.colormap import preset
 from render_server.trace import trace
 
@@ -64,30 +68,72 @@ def key_light(view: View) -> np.ndarray:
     return d / np.linalg.norm(d)  # direction from a surface point toward the light
 
 
-def render(scene: Scene, values: np.ndarray, view: View, shadows: bool = False) -> np.ndarray:
-    """The image of `view`: spheres colored by `values` [n] with the view's colormap/range."""
+@njit(parallel=True, cache=True)
+def _shade(f, width, height, hit_t, hit_id, positions, radius, values, lut, vmin, vmax,
+           nan_rgb, light, shadowed, background, out):
+    """Lambert + ambient shading of every pixel into out [h * w, 3] uint8."""
+    scale = (lut.shape[0] - 1) / (vmax - vmin) if vmax > vmin else 0.0
+    for j in prange(height):
+        for i in range(width):
+            q = j * width + i
+            p = hit_id[q]
+            if p < 0:
+                for c in range(3):
+                    out[q, c] = np.uint8(min(max(background[c], 0.0), 1.0) * 255.0 + 0.5)
+                continue
+            ox, oy, oz, dx, dy, dz = pixel_ray(f, i, j, width, height)
+            t = hit_t[q]
+            nx = (ox + dx * t - positions[p, 0]) / radius
+            ny = (oy + dy * t - positions[p, 1]) / radius
+            nz = (oz + dz * t - positions[p, 2]) / radius
+            lambert = max(nx * light[0] + ny * light[1] + nz * light[2], 0.0)
+            if shadowed[q]:
+                lambert = 0.0
+            v = values[p]
+            if math.isnan(v):
+                r, g, b = nan_rgb[0], nan_rgb[1], nan_rgb[2]
+            else:
+                k = int(min(max((v - vmin) * scale + 0.5, 0.0), lut.shape[0] - 1))
+                r, g, b = lut[k, 0], lut[k, 1], lut[k, 2]
+            shade = AMBIENT + DIFFUSE * lambert
+            out[q, 0] = np.uint8(min(max(r * shade, 0.0), 1.0) * 255.0 + 0.5)
+            out[q, 1] = np.uint8(min(max(g * shade, 0.0), 1.0) * 255.0 + 0.5)
+            out[q, 2] = np.uint8(min(max(b * shade, 0.0), 1.0) * 255.0 + 0.5)
+
+
+def _shadow_mask(scene: Scene, view: View, t: np.ndarray, ids: np.ndarray,
+                 light: np.ndarray) -> np.ndarray:
+    """True where a lit hit point's shadow ray toward the key light meets another sphere."""
+    mask = np.zeros(len(ids), np.bool_)
+    hit = np.flatnonzero(ids >= 0)
+    if hit.size == 0:
+        return mask
     origins, dirs = primary_rays(view.camera, view.width, view.height)
-    t, ids = trace(origins, dirs, scene.positions, scene.radius, scene.bricks, scene.grids)
-    hit = ids >= 0
-    image = np.empty((len(ids), 3))
-    image[:] = view.background
-    if hit.any():
-        hp = origins[hit] + dirs[hit] * t[hit, None]
-        normals = (hp - scene.positions[ids[hit]]) / scene.radius
-        light = key_light(view)
-        lambert = np.clip(normals @ light, 0.0, None)
-        if shadows:
-            lit = lambert > 0
-            start = hp[lit] + normals[lit] * (SHADOW_OFFSET_RADII * scene.radius)
-            _, blocker = trace(start, np.broadcast_to(light, start.shape), scene.positions,
-                               scene.radius, scene.bricks, scene.grids)
-            shade = lambert[lit]
-            shade[blocker >= 0] = 0.0
-            lambert[lit] = shade
-        base = preset(view.colormap).map(values[ids[hit]], *view.range)
-        image[hit] = base * (AMBIENT + DIFFUSE * lambert)[:, None]
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).reshape(
-        view.height, view.width, 3)
+    hp = origins[hit] + dirs[hit] * t[hit, None]
+    normals = (hp - scene.positions[ids[hit]]) / scene.radius
+    facing = normals @ light > 0
+    start = hp[facing] + normals[facing] * (SHADOW_OFFSET_RADII * scene.radius)
+    _, blocker = trace(start, np.broadcast_to(light, start.shape), scene.positions, scene.radius,
+                       scene.bricks, scene.grids)
+    mask[hit[facing]] = blocker >= 0
+    return mask
+
+
+def render(scene: Scene, values: np.ndarray, view: View, shadows: bool = False) -> np.ndarray:
+    """The image [height, width, 3] uint8 of `view`: spheres colored by `values` [n] with the
+    view's colormap and range, Lambert + ambient shading, optional shadows."""
+    frame = ray_frame(view.camera, view.width, view.height)
+    t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height)
+    light = key_light(view)
+    shadowed = (_shadow_mask(scene, view, t, ids, light) if shadows
+                else np.zeros(len(ids), np.bool_))
+    cmap = preset(view.colormap)
+    out = np.empty((len(ids), 3), np.uint8)
+    _shade(frame, view.width, view.height, t, ids, scene.positions, scene.radius,
+           np.ascontiguousarray(values, dtype=np.float64), cmap.lut(), float(view.range[0]),
+           float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
+           np.asarray(view.background, np.float64), out)
+    return out.reshape(view.height, view.width, 3)
 
 
 def encode_png(image: np.ndarray) -> bytes:

@@ -7,7 +7,8 @@ import pytest
 from protocol.spec import Camera
 from render_server.accel import build_grids
 from render_server.bricks import repartition
-from render_server.camera import primary_rays
+from render_server.camera import primary_rays, ray_frame
+from render_server.cast import cast
 from render_server.trace import trace, trace_brute_force
 
 WIDTH, HEIGHT = 64, 48
@@ -81,3 +82,17 @@ def test_degenerate_scenes(case):
     t_ref, ids_ref = trace_brute_force(origins, dirs, positions, 0.1)
     np.testing.assert_array_equal(ids, ids_ref)
     assert (ids >= 0).sum() > 0
+
+
+@pytest.mark.parametrize("kind", ["uniform", "column", "straddle"])
+def test_object_order_cast_equals_brute_force(kind):
+    rng = np.random.default_rng(len(kind))
+    positions, radius = scene(kind, rng)
+    positions = positions.astype(np.float32)
+    near = Camera((0.5, 0.5, 0.5), (0.5, 1.5, 0.5), (0, 0, 1), 60.0)  # inside the cloud
+    for cam in CAMERAS + [near]:
+        origins, dirs = primary_rays(cam, WIDTH, HEIGHT)
+        t, ids = cast(positions, radius, ray_frame(cam, WIDTH, HEIGHT), WIDTH, HEIGHT)
+        t_ref, ids_ref = trace_brute_force(origins, dirs, positions, radius)
+        np.testing.assert_array_equal(ids, ids_ref)
+        np.testing.assert_allclose(t[ids >= 0], t_ref[ids_ref >= 0], rtol=1e-9)

@@ -123,6 +123,7 @@ class Spec:
     run: str
     views: tuple[View, ...]
     version: int = SPEC_VERSION
+    sphere_radius_m: float | None = None  # render radius; None: half the particle spacing
     sent_ns: int = field(default=0, compare=False)
 
     @property
@@ -134,11 +135,15 @@ class Spec:
         return [v for v in self.views if v.wants(step, time_s)]
 
     def to_dict(self) -> dict:
-        return {"version": self.version, "run": self.run, "views": [v.to_dict() for v in self.views]}
+        d = {"version": self.version, "run": self.run, "views": [v.to_dict() for v in self.views]}
+        if self.sphere_radius_m is not None:
+            d["sphere_radius_m"] = self.sphere_radius_m
+        return d
 
     @classmethod
     def from_dict(cls, obj, sent_ns: int = 0) -> Spec:
-        s = check.keys(obj, "spec", {"version", "run", "views"}, error=SpecError)
+        s = check.keys(obj, "spec", {"version", "run", "views"}, {"sphere_radius_m"},
+                       error=SpecError)
         version = check.integer(s["version"], "version", error=SpecError)
         if version != SPEC_VERSION:
             raise SpecError(f"version: spec version {version} is not supported "
@@ -149,8 +154,11 @@ class Spec:
         names = [v.name for v in views]
         if len(set(names)) != len(names):
             raise SpecError(f"views: view names must be unique, got {names}")
+        radius = s.get("sphere_radius_m")
+        if radius is not None:
+            radius = check.number(radius, "sphere_radius_m", 1e-9, None, SpecError)
         return cls(run=check.name(s["run"], "run", SpecError), views=views, version=version,
-                   sent_ns=sent_ns)
+                   sphere_radius_m=radius, sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:

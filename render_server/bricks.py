@@ -28,35 +28,79 @@ class Bricks:
         return len(self.boxes)
 
 
+@njit(cache=True)
+def _select(order, s, e, k, positions, axis):
+    """Reorder order[s:e] so that order[k] holds the particle of rank k - s along `axis`,
+    with smaller-or-equal coordinates before it and larger-or-equal after (quickselect,
+    linear expected time, median-of-three pivots)."""
+    lo, hi = s, e - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        a, b, c = positions[order[lo], axis], positions[order[mid], axis], positions[order[hi], axis]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i, j = lo, hi
+        while i <= j:
+            while positions[order[i], axis] < pivot:
+                i += 1
+            while positions[order[j], axis] > pivot:
+                j -= 1
+            if i <= j:
+                order[i], order[j] = order[j], order[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@njit(cache=True)
+def _kd_level(positions, order, starts, boxes, new_starts, new_boxes):
+    """Split every node of one level at its median along its particles' longest axis."""
+    for node in range(starts.shape[0] - 1):
+        s, e = starts[node], starts[node + 1]
+        k = s + (e - s) // 2
+        axis, best = 0, -1.0
+        for a in range(3):
+            lo, hi = np.inf, -np.inf
+            for i in range(s, e):
+                x = positions[order[i], a]
+                lo, hi = min(lo, x), max(hi, x)
+            span = hi - lo if e > s else boxes[node, 1, a] - boxes[node, 0, a]
+            if span > best:
+                axis, best = a, span
+        if e - s > 1:
+            _select(order, s, e, k, positions, axis)
+            plane = positions[order[k], axis]
+        else:
+            plane = 0.5 * (boxes[node, 0, axis] + boxes[node, 1, axis])
+        plane = min(max(plane, boxes[node, 0, axis]), boxes[node, 1, axis])
+        new_starts[2 * node], new_starts[2 * node + 1] = s, k
+        new_boxes[2 * node] = boxes[node]
+        new_boxes[2 * node + 1] = boxes[node]
+        new_boxes[2 * node, 1, axis] = plane
+        new_boxes[2 * node + 1, 0, axis] = plane
+    new_starts[-1] = starts[-1]
+
+
 def kd_split(positions: np.ndarray, radius: float, levels: int
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Order particles by brick: returns order [n] int64, boxes [2**levels, 2, 3] (m) and
-    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]] (balanced halves)."""
+    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]] (balanced halves).
+
+    positions: [n, 3] float64, m."""
     n = len(positions)
-    lo = positions.min(axis=0).astype(np.float64) - radius
-    hi = positions.max(axis=0).astype(np.float64) + radius
     order = np.arange(n, dtype=np.int64)
-    nodes = [(0, n, lo, hi)]
+    starts = np.array([0, n], dtype=np.int64)
+    boxes = np.array([[positions.min(axis=0) - radius, positions.max(axis=0) + radius]])
     for _ in range(levels):
-        children = []
-        for s, e, blo, bhi in nodes:
-            pts = positions[order[s:e]]
-            span = (pts.max(axis=0) - pts.min(axis=0)) if e > s else (bhi - blo)
-            axis = int(np.argmax(span))
-            k = (e - s) // 2
-            if e - s > 1:
-                part = np.argpartition(pts[:, axis], k)
-                order[s:e] = order[s:e][part]
-                plane = float(positions[order[s + k], axis])
-            else:
-                plane = float(0.5 * (blo[axis] + bhi[axis]))
-            plane = min(max(plane, blo[axis]), bhi[axis])
-            left_hi, right_lo = bhi.copy(), blo.copy()
-            left_hi[axis] = right_lo[axis] = plane
-            children += [(s, s + k, blo, left_hi), (s + k, e, right_lo, bhi)]
-        nodes = children
-    boxes = np.array([[b[2], b[3]] for b in nodes], dtype=np.float64)
-    return order, boxes, np.array([b[0] for b in nodes] + [n], dtype=np.int64)
+        new_starts = np.empty(2 * (len(starts) - 1) + 1, np.int64)
+        new_boxes = np.empty((2 * len(boxes), 2, 3))
+        _kd_level(positions, order, starts, boxes, new_starts, new_boxes)
+        starts, boxes = new_starts, new_boxes
+    return order, boxes, starts
 
 
 @njit(cache=True)
@@ -96,8 +140,8 @@ def repartition(positions: np.ndarray, radius: float, n_bricks: int) -> Bricks:
     if len(positions) == 0:
         raise ValueError("no particles to repartition")
     levels = n_bricks.bit_length() - 1
-    order, boxes, bounds = kd_split(positions, radius, levels)
     pos = np.ascontiguousarray(positions, dtype=np.float64)
+    order, boxes, bounds = kd_split(pos, radius, levels)
     ghost_count = _ghosts(pos, radius, order, bounds, boxes, True, bounds, order)
     owned = np.diff(bounds)
     sizes = owned + ghost_count[1:]

@@ -172,9 +172,9 @@ class RenderServer:
         views = self.spec.wants(step.step, step.time_s)
         if not views or len(step.positions) == 0:
             return
-        radius = 0.5 * step.spacing_m
+        radius = self.spec.sphere_radius_m or 0.5 * step.spacing_m
         t0 = time.perf_counter()
-        scene = prepare(step.positions, radius)
+        scene = prepare(step.positions, radius, grids=self.options.shadows)
         setup_s = time.perf_counter() - t0
         for view in views:
             if view.field not in step.fields:

@@ -42,7 +42,7 @@ class Scene:
     positions: np.ndarray  # [n, 3] float64, m
     radius: float  # m
     bricks: Bricks
-    grids: BrickGrids
+    grids: BrickGrids | None  # per-brick uniform grids, built when shadow rays are cast
 
 
 def default_bricks() -> int:
@@ -50,11 +50,13 @@ def default_bricks() -> int:
     return 1 << (n - 1).bit_length()
 
 
-def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None) -> Scene:
-    """Setup: k-d bricks and their uniform grids for spheres of `radius` (m)."""
+def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None,
+            grids: bool = True) -> Scene:
+    """Setup: k-d bricks for spheres of `radius` (m) and, with `grids`, their uniform grids
+    (needed by shadow rays; primary rays are cast in object order without them)."""
     pos = np.ascontiguousarray(positions, dtype=np.float64)
     bricks = repartition(pos, radius, n_bricks or default_bricks())
-    return Scene(pos, radius, bricks, build_grids(pos, radius, bricks))
+    return Scene(pos, radius, bricks, build_grids(pos, radius, bricks) if grids else None)
 
 
 def field_values(field: np.ndarray) -> np.ndarray:
@@ -104,6 +106,8 @@ def _shade(f, width, height, hit_t, hit_id, positions, radius, values, lut, vmin
 def _shadow_mask(scene: Scene, view: View, t: np.ndarray, ids: np.ndarray,
                  light: np.ndarray) -> np.ndarray:
     """True where a lit hit point's shadow ray toward the key light meets another sphere."""
+    if scene.grids is None:
+        raise ValueError("shadows need the bricks' grids: prepare(..., grids=True)")
     mask = np.zeros(len(ids), np.bool_)
     hit = np.flatnonzero(ids >= 0)
     if hit.size == 0:
@@ -152,7 +156,7 @@ def render_step(positions: np.ndarray, fields: dict[str, np.ndarray], radius: fl
                 views: list[View], shadows: bool = False) -> tuple[dict[str, np.ndarray], RenderTimes]:
     """Every view of one step; returns images by view name and the setup/render wall times."""
     t0 = time.perf_counter()
-    scene = prepare(positions, radius)
+    scene = prepare(positions, radius, grids=shadows)
     t1 = time.perf_counter()
     images = {}
     for view in views:

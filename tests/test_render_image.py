@@ -55,3 +55,10 @@ def test_png_round_trip():
     img = (np.random.default_rng(0).random((20, 30, 3)) * 255).astype(np.uint8)
     back = np.asarray(Image.open(io.BytesIO(encode_png(img))))
     np.testing.assert_array_equal(back, img)
+
+
+def test_uhd_image_size():
+    view = View("uhd", Camera((0.0, -2.0, 0.0), (0.0, 0.0, 0.0), (0, 0, 1), 30.0), 3840, 2160,
+                field="value", colormap="Grayscale", range=(0.0, 1.0))
+    images, _ = render_step(np.zeros((3, 3), np.float32), {"value": np.ones(3)}, 0.2, [view])
+    assert images["uhd"].shape == (2160, 3840, 3) and images["uhd"].any()

@@ -46,6 +46,7 @@ def with_change(path: str, value):
     ("views.0.t_end_s", -1, r"views\[0\].t_end_s"),
     ("views.0.every_steps", 0, r"views\[0\].every_steps"),
     ("views.0.colour", "red", r"views\[0\]: unknown field\(s\) colour"),
+    ("sphere_radius_m", 0, r"sphere_radius_m: 0 is outside"),
 ])
 def test_bad_spec_names_the_field(path, value, message):
     with pytest.raises(SpecError, match=message):
@@ -57,6 +58,14 @@ def test_file_and_wire_round_trip(tmp_path):
     spec.save(tmp_path / "spec.json")
     assert Spec.load(tmp_path / "spec.json") == spec
     assert math.isinf(spec.views[1].t_end_s)
+
+
+def test_sphere_radius_round_trips():
+    d = base()
+    d["sphere_radius_m"] = 0.004
+    spec = Spec.from_dict(d)
+    assert spec.sphere_radius_m == 0.004 and Spec.from_dict(spec.to_dict()) == spec
+    assert make_spec().sphere_radius_m is None and "sphere_radius_m" not in make_spec().to_dict()
 
 
 def test_bad_json_file(tmp_path):

@@ -97,22 +97,29 @@ def ray_frame(camera: Camera, width: int, height: int) -> RayFrame:
 
 
 @njit(cache=True, inline="always")
-def pixel_ray(f, i, j, width, height):
-    """Origin and unit direction (ox, oy, oz, dx, dy, dz) of the ray through the center of
-    pixel column i, row j (row 0 at the top)."""
+def pixel_ray_unnormalized(f, i, j, width, height):
+    """Origin and direction (ox, oy, oz, dx, dy, dz) of the ray through the center of pixel
+    column i, row j (row 0 at the top); the direction is not normalized in perspective."""
     gx = 2.0 * (i + 0.5) / width - 1.0
     gy = 1.0 - 2.0 * (j + 0.5) / height
     sx, sy = gx * f.half_width, gy * f.half_height
     if f.perspective:
-        dx = f.forward[0] + sx * f.right[0] + sy * f.up[0]
-        dy = f.forward[1] + sx * f.right[1] + sy * f.up[1]
-        dz = f.forward[2] + sx * f.right[2] + sy * f.up[2]
-        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-        return f.position[0], f.position[1], f.position[2], dx / norm, dy / norm, dz / norm
+        return (f.position[0], f.position[1], f.position[2],
+                f.forward[0] + sx * f.right[0] + sy * f.up[0],
+                f.forward[1] + sx * f.right[1] + sy * f.up[1],
+                f.forward[2] + sx * f.right[2] + sy * f.up[2])
     return (f.position[0] + sx * f.right[0] + sy * f.up[0],
             f.position[1] + sx * f.right[1] + sy * f.up[1],
             f.position[2] + sx * f.right[2] + sy * f.up[2],
             f.forward[0], f.forward[1], f.forward[2])
+
+
+@njit(cache=True, inline="always")
+def pixel_ray(f, i, j, width, height):
+    """Origin and unit direction of the ray through the center of pixel (i, j)."""
+    ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return ox, oy, oz, dx / norm, dy / norm, dz / norm
 
 
 @njit(parallel=True, cache=True)

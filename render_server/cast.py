@@ -1,7 +1,7 @@
 """Primary visibility by exact ray casting in object order.
 
 Each sphere's screen footprint is bounded exactly (tangent lines of the perspective
-projection, or its extent in parallel projection) plus a pixel of margin; within it, the ray
+projection, or its extent in parallel projection) plus a rounding margin; within it, the ray
 of every pixel center is intersected with the sphere exactly and the nearest hit wins
 (ties: lowest particle index, as in the brute-force reference). Spheres are binned into
 image row bands by a counting sort; bands are disjoint, so threads never write the same
@@ -17,10 +17,10 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from render_server.camera import RayFrame, pixel_ray
+from render_server.camera import RayFrame, pixel_ray_unnormalized
 
 BANDS_PER_WORKER = 16
-MARGIN_PX = 1  # footprint margin against rounding at the tangent bound
+MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 
 
 @njit(parallel=True, cache=True)
@@ -51,10 +51,12 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1):
         else:
             gx_lo, gx_hi = (xc - r) / f.half_width, (xc + r) / f.half_width
             gy_lo, gy_hi = (yc - r) / f.half_height, (yc + r) / f.half_height
-        a = math.ceil((gx_lo + 1.0) * 0.5 * width - 0.5) - MARGIN_PX
-        b = math.floor((gx_hi + 1.0) * 0.5 * width - 0.5) + MARGIN_PX
-        c = math.ceil((1.0 - gy_hi) * 0.5 * height - 0.5) - MARGIN_PX
-        d = math.floor((1.0 - gy_lo) * 0.5 * height - 0.5) + MARGIN_PX
+        gx_lo, gx_hi = gx_lo - MARGIN_NDC, gx_hi + MARGIN_NDC
+        gy_lo, gy_hi = gy_lo - MARGIN_NDC, gy_hi + MARGIN_NDC
+        a = math.ceil((gx_lo + 1.0) * 0.5 * width - 0.5)
+        b = math.floor((gx_hi + 1.0) * 0.5 * width - 0.5)
+        c = math.ceil((1.0 - gy_hi) * 0.5 * height - 0.5)
+        d = math.floor((1.0 - gy_lo) * 0.5 * height - 0.5)
         i0[p], i1[p] = max(a, 0), min(b, width - 1)
         j0[p], j1[p] = max(c, 0), min(d, height - 1)
 
@@ -91,16 +93,19 @@ def _cast_bands(positions, r2, f, width, height, i0, i1, j0, j1, band_rows, n_ba
                 cx, cy, cz = positions[p, 0], positions[p, 1], positions[p, 2]
                 for j in range(max(j0[p], row0), min(j1[p], row1) + 1):
                     for i in range(i0[p], i1[p] + 1):
-                        ox, oy, oz, dx, dy, dz = pixel_ray(f, i, j, width, height)
+                        # unnormalized direction: t is in units of |d|, the same for every
+                        # sphere of this pixel, so comparisons hold; scaled to m at the end
+                        ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
                         qx, qy, qz = ox - cx, oy - cy, oz - cz
+                        a = dx * dx + dy * dy + dz * dz
                         b = qx * dx + qy * dy + qz * dz
-                        disc = b * b - (qx * qx + qy * qy + qz * qz - r2)
+                        disc = b * b - a * (qx * qx + qy * qy + qz * qz - r2)
                         if disc < 0.0:
                             continue
                         s = math.sqrt(disc)
-                        t = -b - s
+                        t = (-b - s) / a
                         if t < 0.0:
-                            t = -b + s
+                            t = (-b + s) / a
                         if t < 0.0:
                             continue
                         q = j * width + i
@@ -131,4 +136,18 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     hit_id = np.full(width * height, -1, np.int64)
     _cast_bands(pos, radius * radius, frame, width, height, i0, i1, j0, j1, band_rows, n_bands,
                 start, items, n_workers, hit_t, hit_id)
+    _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id
+
+
+@njit(parallel=True, cache=True)
+def _to_metres(f, width, height, hit_t):
+    """Scale distances from units of the unnormalized ray direction to m."""
+    if not f.perspective:
+        return
+    for j in prange(height):
+        for i in range(width):
+            q = j * width + i
+            if hit_t[q] < math.inf:
+                _, _, _, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
+                hit_t[q] *= math.sqrt(dx * dx + dy * dy + dz * dz)

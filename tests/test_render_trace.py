@@ -96,3 +96,18 @@ def test_object_order_cast_equals_brute_force(kind):
         t_ref, ids_ref = trace_brute_force(origins, dirs, positions, radius)
         np.testing.assert_array_equal(ids, ids_ref)
         np.testing.assert_allclose(t[ids >= 0], t_ref[ids_ref >= 0], rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_object_order_cast_random_cameras(seed):
+    rng = np.random.default_rng(100 + seed)
+    positions = rng.normal(scale=0.3, size=(400, 3)).astype(np.float32)
+    radius = float(rng.uniform(0.005, 0.08))
+    for _ in range(3):
+        cam = Camera(tuple(rng.uniform(-2, 2, 3)), tuple(rng.normal(scale=0.2, size=3)),
+                     tuple(rng.normal(size=3)), float(rng.uniform(15, 90)),
+                     bool(rng.random() < 0.3), float(rng.uniform(0.3, 1.5)))
+        origins, dirs = primary_rays(cam, WIDTH, HEIGHT)
+        _, ids = cast(positions, radius, ray_frame(cam, WIDTH, HEIGHT), WIDTH, HEIGHT)
+        _, ids_ref = trace_brute_force(origins, dirs, positions, radius)
+        np.testing.assert_array_equal(ids, ids_ref)

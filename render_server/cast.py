@@ -20,12 +20,14 @@ from numba import njit, prange
 from render_server.camera import RayFrame, pixel_ray_unnormalized
 
 BANDS_PER_WORKER = 16
+DEPTH_BUCKETS = 4096  # depth ordering resolution (front-to-back culling only; not correctness)
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 
 
 @njit(parallel=True, cache=True)
-def _bounds(positions, radius, f, width, height, i0, i1, j0, j1):
-    """Pixel column/row ranges [i0, i1] x [j0, j1] that can see each sphere (empty: i0 > i1)."""
+def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
+    """Pixel column/row ranges [i0, i1] x [j0, j1] that can see each sphere (empty: i0 > i1)
+    and the sphere's nearest camera depth zmin (m along the view direction)."""
     r = radius
     for p in prange(positions.shape[0]):
         rx = positions[p, 0] - f.position[0]
@@ -34,6 +36,7 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1):
         xc = rx * f.right[0] + ry * f.right[1] + rz * f.right[2]
         yc = rx * f.up[0] + ry * f.up[1] + rz * f.up[2]
         zc = rx * f.forward[0] + ry * f.forward[1] + rz * f.forward[2]
+        zmin[p] = zc - r
         if f.perspective:
             if zc + r <= 0.0:  # wholly behind the camera
                 i0[p], i1[p], j0[p], j1[p] = 1, 0, 1, 0
@@ -62,10 +65,34 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1):
 
 
 @njit(cache=True)
-def _bin_bands(j0, j1, i0, i1, band_rows, n_bands, start, items):
-    """Counting sort of sphere references into row bands (a sphere can span several)."""
+def _depth_order(zmin, i0, i1, order):
+    """Visible spheres by increasing nearest depth (bucketed counting sort, linear);
+    returns how many were written to order."""
+    lo, hi = math.inf, -math.inf
+    for p in range(zmin.shape[0]):
+        if i0[p] <= i1[p]:
+            lo, hi = min(lo, zmin[p]), max(hi, zmin[p])
+    count = np.zeros(DEPTH_BUCKETS + 1, np.int64)
+    scale = (DEPTH_BUCKETS - 1) / (hi - lo) if hi > lo else 0.0
+    for p in range(zmin.shape[0]):
+        if i0[p] <= i1[p]:
+            count[int((zmin[p] - lo) * scale) + 1] += 1
+    for k in range(DEPTH_BUCKETS):
+        count[k + 1] += count[k]
+    for p in range(zmin.shape[0]):
+        if i0[p] <= i1[p]:
+            k = int((zmin[p] - lo) * scale)
+            order[count[k]] = p
+            count[k] += 1
+    return count[DEPTH_BUCKETS - 1]
+
+
+@njit(cache=True)
+def _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items):
+    """Counting sort of sphere references into row bands (a sphere can span several); each
+    band keeps the front-to-back order of `order`."""
     start[:] = 0
-    for p in range(j0.shape[0]):
+    for p in order:
         if i0[p] <= i1[p] and j0[p] <= j1[p]:
             for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
                 start[b + 1] += 1
@@ -74,7 +101,7 @@ def _bin_bands(j0, j1, i0, i1, band_rows, n_bands, start, items):
     if items.shape[0] < start[n_bands]:
         return start[n_bands]  # caller reallocates and calls again
     fill = start[:n_bands].copy()
-    for p in range(j0.shape[0]):
+    for p in order:
         if i0[p] <= i1[p] and j0[p] <= j1[p]:
             for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
                 items[fill[b]] = p
@@ -83,15 +110,29 @@ def _bin_bands(j0, j1, i0, i1, band_rows, n_bands, start, items):
 
 
 @njit(parallel=True, cache=True)
-def _cast_bands(positions, r2, f, width, height, i0, i1, j0, j1, band_rows, n_bands, start,
-                items, n_workers, hit_t, hit_id):
+def _cast_bands(positions, r2, f, width, height, i0, i1, j0, j1, zmin, band_rows, n_bands,
+                start, items, n_workers, hit_t, hit_id):
     for w in prange(n_workers):
         for band in range(w, n_bands, n_workers):  # interleaved: balanced across workers
             row0, row1 = band * band_rows, min((band + 1) * band_rows, height) - 1
             for k in range(start[band], start[band + 1]):
                 p = items[k]
+                ja, jb = max(j0[p], row0), min(j1[p], row1)
+                # hit_t is the camera depth of the hit (the unnormalized direction has unit
+                # component along the view): skip a sphere whose nearest depth lies behind
+                # everything already hit in its footprint (front-to-back order makes it common)
+                occluded = True
+                for j in range(ja, jb + 1):
+                    for i in range(i0[p], i1[p] + 1):
+                        if hit_t[j * width + i] >= zmin[p]:
+                            occluded = False
+                            break
+                    if not occluded:
+                        break
+                if occluded:
+                    continue
                 cx, cy, cz = positions[p, 0], positions[p, 1], positions[p, 2]
-                for j in range(max(j0[p], row0), min(j1[p], row1) + 1):
+                for j in range(ja, jb + 1):
                     for i in range(i0[p], i1[p] + 1):
                         # unnormalized direction: t is in units of |d|, the same for every
                         # sphere of this pixel, so comparisons hold; scaled to m at the end
@@ -121,21 +162,24 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     n = len(pos)
     i0, i1 = np.empty(n, np.int64), np.empty(n, np.int64)
     j0, j1 = np.empty(n, np.int64), np.empty(n, np.int64)
-    _bounds(pos, radius, frame, width, height, i0, i1, j0, j1)
+    zmin = np.empty(n)
+    _bounds(pos, radius, frame, width, height, i0, i1, j0, j1, zmin)
+    order = np.empty(n, np.int64)
+    order = order[:_depth_order(zmin, i0, i1, order)]
     n_workers = numba.get_num_threads()
     n_bands = min(height, BANDS_PER_WORKER * n_workers)
     band_rows = -(-height // n_bands)
     n_bands = -(-height // band_rows)
     start = np.zeros(n_bands + 1, np.int64)
     items = np.empty(n + n // 4, np.int64)
-    needed = _bin_bands(j0, j1, i0, i1, band_rows, n_bands, start, items)
+    needed = _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items)
     if needed > len(items):
         items = np.empty(needed, np.int64)
-        _bin_bands(j0, j1, i0, i1, band_rows, n_bands, start, items)
+        _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items)
     hit_t = np.full(width * height, np.inf)
     hit_id = np.full(width * height, -1, np.int64)
-    _cast_bands(pos, radius * radius, frame, width, height, i0, i1, j0, j1, band_rows, n_bands,
-                start, items, n_workers, hit_t, hit_id)
+    _cast_bands(pos, radius * radius, frame, width, height, i0, i1, j0, j1, zmin, band_rows,
+                n_bands, start, items, n_workers, hit_t, hit_id)
     _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id
 

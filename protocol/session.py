@@ -156,34 +156,47 @@ class Received:
 
 
 class Inbox:
-    """A bounded queue of received samples; when full, new samples are dropped and counted.
+    """A bounded queue of received samples; when full (`capacity` messages or `max_bytes`
+    of payload), new samples are dropped and counted.
 
     The zenoh callback only copies the payload and enqueues, so a slow consumer never
-    stalls zenoh's threads and memory stays bounded by `capacity` messages.
+    stalls zenoh's threads and memory stays bounded.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, capacity: int = 256):
+    def __init__(self, session: zenoh.Session, key: str, capacity: int = 256,
+                 max_bytes: int | None = None):
         self.dropped = 0
         self.received = 0
+        self.max_bytes = max_bytes
+        self._queued_bytes = 0
         self._queue: queue.Queue[Received] = queue.Queue(maxsize=capacity)
         self._lock = threading.Lock()
         self._sub = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = Received(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        size = len(sample.payload)
         with self._lock:
             self.received += 1
+            if self.max_bytes is not None and self._queued_bytes + size > self.max_bytes:
+                self.dropped += 1
+                return
+        item = Received(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        with self._lock:
             try:
                 self._queue.put_nowait(item)
+                self._queued_bytes += size
             except queue.Full:
                 self.dropped += 1
 
     def get(self, timeout: float | None = None) -> Received | None:
         """The next sample, or None after `timeout` seconds."""
         try:
-            return self._queue.get(timeout=timeout)
+            item = self._queue.get(timeout=timeout)
         except queue.Empty:
             return None
+        with self._lock:
+            self._queued_bytes -= len(item.payload)
+        return item
 
     def close(self) -> None:
         self._sub.undeclare()

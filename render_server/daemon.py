@@ -43,7 +43,8 @@ class ServerOptions:
     record: Path | None = None  # MCAP log of every message of the run
     timeout_s: float = DEFAULT_TIMEOUT_S
     max_pending: int = DEFAULT_MAX_PENDING
-    inbox_capacity: int = 256
+    inbox_capacity: int = 256  # chunks
+    inbox_bytes: int = 1 << 30  # and at most this many bytes of them queued
     shadows: bool = False
     write_png: bool = True
 
@@ -106,7 +107,8 @@ class RenderServer:
         self._last_error_event = 0.0
         warm_up()  # compile the kernels now, not on the first step
         self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
-        self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity)
+        self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
+                            options.inbox_bytes)
         self._queryable = session.declare_queryable(keys.spec(self.run), self._on_query)
         self._events = session.declare_subscriber(keys.event(self.run), self._on_event)
         self._tokens = session.liveliness().declare_subscriber(keys.rank_tokens(self.run),

@@ -100,3 +100,23 @@ def test_recorder_killed_mid_run_leaves_a_readable_file(server, client_factory, 
     assert len(records) >= 20
     steps = [r.decode().step for r in records]
     assert steps == sorted(steps) and all(r.topic == f"minority/{RUN}/chunk" for r in records)
+
+
+def test_inbox_bounds_queued_bytes(server, client_factory):
+    sender = client_factory()
+    payload = make_chunk(n=1000, run=RUN).encode()  # ~28 kB
+    inbox = Inbox(server, keys.chunks(RUN), capacity=100, max_bytes=3 * len(payload))
+    probes = handshake(sender, [inbox])
+    assert wait_until(lambda: inbox.received == probes)
+    while inbox.get(timeout=0) is not None:  # drain the probes
+        pass
+    dropped = inbox.dropped
+    for step in range(1, 11):
+        put(sender, keys.chunk(RUN, step, 0), make_chunk(n=1000, step=step, run=RUN).encode(),
+            LOSSLESS_QOS)
+    assert wait_until(lambda: inbox.received == probes + 10)
+    assert inbox.dropped - dropped == 7  # only three payloads fit
+    assert [decode_as(inbox.get(timeout=0).payload, Chunk).step for _ in range(3)] == [1, 2, 3]
+    put(sender, keys.chunk(RUN, 11, 0), make_chunk(n=1000, step=11, run=RUN).encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: inbox.received == probes + 11)
+    assert inbox.get(timeout=5) is not None  # room again once drained

@@ -45,7 +45,7 @@ def _cell_range(x, r, lo, h, n):
     return max(c0, 0), min(c1, n - 1)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _build(positions, radius, boxes, start, members, dims, cell_size, cell_offset,
            cell_start, ref_offset, items, count_only):
     for b in prange(boxes.shape[0]):

@@ -122,7 +122,7 @@ def pixel_ray(f, i, j, width, height):
     return ox, oy, oz, dx / norm, dy / norm, dz / norm
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _rays(f, width, height, origins, dirs):
     for j in prange(height):
         for i in range(width):

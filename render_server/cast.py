@@ -24,7 +24,7 @@ DEPTH_BUCKETS = 4096  # depth ordering resolution (front-to-back culling only; n
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
     """Pixel column/row ranges [i0, i1] x [j0, j1] that can see each sphere (empty: i0 > i1)
     and the sphere's nearest camera depth zmin (m along the view direction)."""
@@ -64,7 +64,7 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
         j0[p], j1[p] = max(c, 0), min(d, height - 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _depth_order(zmin, i0, i1, order):
     """Visible spheres by increasing nearest depth (bucketed counting sort, linear);
     returns how many were written to order."""
@@ -87,7 +87,7 @@ def _depth_order(zmin, i0, i1, order):
     return count[DEPTH_BUCKETS - 1]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items):
     """Counting sort of sphere references into row bands (a sphere can span several); each
     band keeps the front-to-back order of `order`."""
@@ -109,7 +109,7 @@ def _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items):
     return start[n_bands]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _cast_bands(positions, r2, f, width, height, i0, i1, j0, j1, zmin, band_rows, n_bands,
                 start, items, n_workers, hit_t, hit_id):
     for w in prange(n_workers):
@@ -184,7 +184,7 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     return hit_t, hit_id
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _to_metres(f, width, height, hit_t):
     """Scale distances from units of the unnormalized ray direction to m."""
     if not f.perspective:

@@ -70,7 +70,7 @@ def key_light(view: View) -> np.ndarray:
     return d / np.linalg.norm(d)  # direction from a surface point toward the light
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _shade(f, width, height, hit_t, hit_id, positions, radius, values, lut, vmin, vmax,
            nan_rgb, light, shadowed, background, out):
     """Lambert + ambient shading of every pixel into out [h * w, 3] uint8."""

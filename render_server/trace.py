@@ -67,7 +67,7 @@ def _dda_axis(o, d, t_enter, lo, h, n):
     return c, 0, math.inf, math.inf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2, boxes,
                  dims, cell_size, cell_offset, cell_start, ref_offset, items, skip):
     """Closest hit inside brick b between t_enter and t_exit; returns (best_t, best_id)."""
@@ -106,7 +106,7 @@ def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2
                 return best_t, best_id
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _closest(o, d, t_min, skip, positions, r2, boxes, dims, cell_size, cell_offset,
              cell_start, ref_offset, items, t_in, t_out, order):
     nb = boxes.shape[0]
@@ -133,7 +133,7 @@ def _closest(o, d, t_min, skip, positions, r2, boxes, dims, cell_size, cell_offs
     return best_t, best_id
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _trace_all(origins, dirs, positions, r2, boxes, dims, cell_size, cell_offset, cell_start,
                ref_offset, items, hit_t, hit_id):
     nrays = origins.shape[0]

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from render_server.bricks import Bricks
+from render_server.bricks import Bricks, as_positions
 
 SPHERES_PER_CELL = 2.0  # target mean references per cell
 MAX_CELLS_PER_AXIS = 1024
@@ -77,7 +77,7 @@ def _build(positions, radius, boxes, start, members, dims, cell_size, cell_offse
 
 def build_grids(positions: np.ndarray, radius: float, bricks: Bricks) -> BrickGrids:
     """Uniform grids of every brick of `bricks` (positions [n, 3] m, sphere radius m)."""
-    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    pos = as_positions(positions)
     dims, cell_size = grid_dims(bricks.boxes, np.diff(bricks.start), radius)
     ncells = dims.prod(axis=1)
     cell_offset = np.zeros(bricks.count + 1, np.int64)

@@ -120,13 +120,16 @@ class StepAssembler:
         for c in chunks[1:]:
             names &= set(c.fields)
         names.discard("positions")
-        merged = {k: np.concatenate([c.fields[k] for c in chunks]) for k in sorted(names)}
+        def join(arrays: list[np.ndarray]) -> np.ndarray:
+            return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)  # no copy for one
+
+        merged = {k: join([c.fields[k] for c in chunks]) for k in sorted(names)}
         # receive time from the senders' stamps (one host, or synchronized clocks); from the
         # first arrival when a stamp is missing or lies in the future (clock skew)
         start_ns = p.first_sent_ns if 0 < p.first_sent_ns <= p.first_ns else p.first_ns
         return AssembledStep(
             step=step, time_s=p.time_s,
-            positions=np.concatenate([c.positions for c in chunks]), fields=merged,
+            positions=join([c.positions for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
             nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
             incomplete=incomplete or len(chunks) < p.ranks)

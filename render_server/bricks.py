@@ -16,6 +16,14 @@ from numba import njit, prange
 MAX_BRICKS = 64
 
 
+def as_positions(positions: np.ndarray) -> np.ndarray:
+    """Positions [n, 3] as a C-contiguous float32 or float64 array, copied only if needed
+    (chunks carry float32; kernels compute in float64 either way)."""
+    if positions.dtype in (np.float32, np.float64):
+        return np.ascontiguousarray(positions)
+    return np.ascontiguousarray(positions, dtype=np.float64)
+
+
 @dataclass
 class Bricks:
     boxes: np.ndarray  # [b, 2, 3] float64, m: lo and hi corner of each brick (disjoint)
@@ -98,11 +106,12 @@ def kd_split(positions: np.ndarray, radius: float, levels: int
     """Order particles by brick: returns order [n] int64, boxes [2**levels, 2, 3] (m) and
     bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]] (balanced halves).
 
-    positions: [n, 3] float64, m."""
+    positions: [n, 3] float32 or float64, m."""
     n = len(positions)
     order = np.arange(n, dtype=np.int64)
     starts = np.array([0, n], dtype=np.int64)
-    boxes = np.array([[positions.min(axis=0) - radius, positions.max(axis=0) + radius]])
+    boxes = np.array([[positions.min(axis=0) - radius, positions.max(axis=0) + radius]],
+                     dtype=np.float64)
     for _ in range(levels):
         new_starts = np.empty(2 * (len(starts) - 1) + 1, np.int64)
         new_boxes = np.empty((2 * len(boxes), 2, 3))
@@ -148,7 +157,7 @@ def repartition(positions: np.ndarray, radius: float, n_bricks: int) -> Bricks:
     if len(positions) == 0:
         raise ValueError("no particles to repartition")
     levels = n_bricks.bit_length() - 1
-    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    pos = as_positions(positions)
     order, boxes, bounds = kd_split(pos, radius, levels)
     ghost_count = _ghosts(pos, radius, order, bounds, boxes, True, bounds, order)
     owned = np.diff(bounds)

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from render_server.bricks import as_positions
 from render_server.camera import RayFrame, pixel_ray_unnormalized
 
 BANDS_PER_WORKER = 16
@@ -158,7 +159,7 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
          ) -> tuple[np.ndarray, np.ndarray]:
     """Closest sphere hit per pixel, row-major from the top left: distances [h * w] (m, inf
     where nothing is hit) and particle ids [h * w] (-1)."""
-    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    pos = as_positions(positions)
     n = len(pos)
     i0, i1 = np.empty(n, np.int64), np.empty(n, np.int64)
     j0, j1 = np.empty(n, np.int64), np.empty(n, np.int64)

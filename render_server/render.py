@@ -20,7 +20,7 @@ from PIL import Image
 
 from protocol.spec import View
 from render_server.accel import BrickGrids, build_grids
-from render_server.bricks import Bricks, repartition
+from render_server.bricks import Bricks, as_positions, repartition
 from render_server.camera import basis, pixel_ray, primary_rays, ray_frame
 from render_server.cast import cast
 from render_server.colormap import preset
@@ -39,7 +39,7 @@ PNG_COMPRESS_LEVEL = 1  # zlib level: fast, still lossless
 class Scene:
     """A step's particles prepared for rendering (the setup phase)."""
 
-    positions: np.ndarray  # [n, 3] float64, m
+    positions: np.ndarray  # [n, 3] float32 or float64, m
     radius: float  # m
     bricks: Bricks
     grids: BrickGrids | None  # per-brick uniform grids, built when shadow rays are cast
@@ -54,7 +54,7 @@ def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None,
             grids: bool = True) -> Scene:
     """Setup: k-d bricks for spheres of `radius` (m) and, with `grids`, their uniform grids
     (needed by shadow rays; primary rays are cast in object order without them)."""
-    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    pos = as_positions(positions)
     bricks = repartition(pos, radius, n_bricks or default_bricks())
     return Scene(pos, radius, bricks, build_grids(pos, radius, bricks) if grids else None)
 

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit, prange
 
 from render_server.accel import BrickGrids
-from render_server.bricks import MAX_BRICKS, Bricks
+from render_server.bricks import MAX_BRICKS, Bricks, as_positions
 
 RAYS_PER_TASK = 256  # rays per parallel work item (scratch arrays are per item)
 NO_HIT = -1
@@ -154,7 +154,7 @@ def trace(origins: np.ndarray, dirs: np.ndarray, positions: np.ndarray, radius: 
     hit_t = np.empty(len(origins))
     hit_id = np.empty(len(origins), np.int64)
     _trace_all(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float64),
-               np.ascontiguousarray(positions, np.float64), radius * radius, bricks.boxes,
+               as_positions(positions), radius * radius, bricks.boxes,
                grids.dims, grids.cell_size, grids.cell_offset, grids.cell_start,
                grids.ref_offset, grids.items, hit_t, hit_id)
     return hit_t, hit_id

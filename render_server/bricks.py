@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 MAX_BRICKS = 64
 
@@ -37,24 +37,23 @@ class Bricks:
 
 
 @njit(cache=True, nogil=True)
-def _select(keys, idx, k):
-    """Reorder keys (and idx with them) so that keys[k] is the k-th smallest, smaller-or-
-    equal keys before it and larger-or-equal after (quickselect on contiguous arrays, linear
-    expected time, median-of-three pivots)."""
-    lo, hi = 0, keys.shape[0] - 1
+def _select(order, s, e, k, positions, axis):
+    """Reorder order[s:e] so that order[k] holds the particle of rank k - s along `axis`,
+    with smaller-or-equal coordinates before it and larger-or-equal after (quickselect,
+    linear expected time, median-of-three pivots)."""
+    lo, hi = s, e - 1
     while hi > lo:
         mid = (lo + hi) // 2
-        a, b, c = keys[lo], keys[mid], keys[hi]
+        a, b, c = positions[order[lo], axis], positions[order[mid], axis], positions[order[hi], axis]
         pivot = max(min(a, b), min(max(a, b), c))
         i, j = lo, hi
         while i <= j:
-            while keys[i] < pivot:
+            while positions[order[i], axis] < pivot:
                 i += 1
-            while keys[j] > pivot:
+            while positions[order[j], axis] > pivot:
                 j -= 1
             if i <= j:
-                keys[i], keys[j] = keys[j], keys[i]
-                idx[i], idx[j] = idx[j], idx[i]
+                order[i], order[j] = order[j], order[i]
                 i += 1
                 j -= 1
         if k <= j:
@@ -65,35 +64,28 @@ def _select(keys, idx, k):
             return
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _kd_level(positions, order, starts, boxes, new_starts, new_boxes):
-    """Split every node of one level (in parallel) at its median along its particles'
-    longest axis."""
-    for node in prange(starts.shape[0] - 1):
+    """Split every node of one level at its median along its particles' longest axis."""
+    for node in range(starts.shape[0] - 1):
         s, e = starts[node], starts[node + 1]
-        k = (e - s) // 2
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        for i in range(s, e):
-            p = order[i]
-            for a in range(3):
-                lo[a] = min(lo[a], positions[p, a])
-                hi[a] = max(hi[a], positions[p, a])
+        k = s + (e - s) // 2
         axis, best = 0, -1.0
         for a in range(3):
-            span = hi[a] - lo[a] if e > s else boxes[node, 1, a] - boxes[node, 0, a]
+            lo, hi = np.inf, -np.inf
+            for i in range(s, e):
+                x = positions[order[i], a]
+                lo, hi = min(lo, x), max(hi, x)
+            span = hi - lo if e > s else boxes[node, 1, a] - boxes[node, 0, a]
             if span > best:
                 axis, best = a, span
         if e - s > 1:
-            keys = np.empty(e - s)
-            for i in range(s, e):
-                keys[i - s] = positions[order[i], axis]
-            _select(keys, order[s:e], k)
-            plane = keys[k]
+            _select(order, s, e, k, positions, axis)
+            plane = positions[order[k], axis]
         else:
             plane = 0.5 * (boxes[node, 0, axis] + boxes[node, 1, axis])
         plane = min(max(plane, boxes[node, 0, axis]), boxes[node, 1, axis])
-        new_starts[2 * node], new_starts[2 * node + 1] = s, s + k
+        new_starts[2 * node], new_starts[2 * node + 1] = s, k
         new_boxes[2 * node] = boxes[node]
         new_boxes[2 * node + 1] = boxes[node]
         new_boxes[2 * node, 1, axis] = plane

@@ -61,80 +61,77 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
         b = math.floor((gx_hi + 1.0) * 0.5 * width - 0.5)
         c = math.ceil((1.0 - gy_hi) * 0.5 * height - 0.5)
         d = math.floor((1.0 - gy_lo) * 0.5 * height - 0.5)
-        i0[p], i1[p] = max(a, 0), min(b, width - 1)
-        j0[p], j1[p] = max(c, 0), min(d, height - 1)
+        # clamped into [-1, size] first, so far-off footprints fit int32 and stay empty
+        i0[p], i1[p] = min(max(a, 0), width), max(min(b, width - 1), -1)
+        j0[p], j1[p] = min(max(c, 0), height), max(min(d, height - 1), -1)
 
 
 @njit(cache=True, nogil=True)
-def _depth_order(zmin, i0, i1, order):
-    """Visible spheres by increasing nearest depth (bucketed counting sort, linear);
-    returns how many were written to order."""
+def _bin(positions, i0, i1, j0, j1, zmin, band_rows, n_bands, band_start, rec_id, rec_box,
+         rec_z, rec_c):
+    """Counting sort of sphere references by (row band, nearest-depth bucket), reading the
+    spheres in index order and writing compact records (id, footprint, zmin, center) band
+    by band, front to back within a band. Returns the number of records; writes nothing
+    past the arrays' capacity (the caller reallocates and calls again)."""
+    n = zmin.shape[0]
     lo, hi = math.inf, -math.inf
-    for p in range(zmin.shape[0]):
-        if i0[p] <= i1[p]:
+    for p in range(n):
+        if i0[p] <= i1[p] and j0[p] <= j1[p]:
             lo, hi = min(lo, zmin[p]), max(hi, zmin[p])
-    count = np.zeros(DEPTH_BUCKETS + 1, np.int64)
     scale = (DEPTH_BUCKETS - 1) / (hi - lo) if hi > lo else 0.0
-    for p in range(zmin.shape[0]):
-        if i0[p] <= i1[p]:
-            count[int((zmin[p] - lo) * scale) + 1] += 1
-    for k in range(DEPTH_BUCKETS):
-        count[k + 1] += count[k]
-    for p in range(zmin.shape[0]):
-        if i0[p] <= i1[p]:
+    count = np.zeros(n_bands * DEPTH_BUCKETS + 1, np.int64)
+    for p in range(n):
+        if i0[p] <= i1[p] and j0[p] <= j1[p]:
             k = int((zmin[p] - lo) * scale)
-            order[count[k]] = p
-            count[k] += 1
-    return count[DEPTH_BUCKETS - 1]
-
-
-@njit(cache=True, nogil=True)
-def _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items):
-    """Counting sort of sphere references into row bands (a sphere can span several); each
-    band keeps the front-to-back order of `order`."""
-    start[:] = 0
-    for p in order:
-        if i0[p] <= i1[p] and j0[p] <= j1[p]:
             for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
-                start[b + 1] += 1
-    for b in range(n_bands):
-        start[b + 1] += start[b]
-    if items.shape[0] < start[n_bands]:
-        return start[n_bands]  # caller reallocates and calls again
-    fill = start[:n_bands].copy()
-    for p in order:
+                count[b * DEPTH_BUCKETS + k + 1] += 1
+    for c in range(n_bands * DEPTH_BUCKETS):
+        count[c + 1] += count[c]
+    total = count[n_bands * DEPTH_BUCKETS]
+    for b in range(n_bands + 1):
+        band_start[b] = count[b * DEPTH_BUCKETS]
+    if rec_id.shape[0] < total:
+        return total
+    for p in range(n):
         if i0[p] <= i1[p] and j0[p] <= j1[p]:
+            k = int((zmin[p] - lo) * scale)
             for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
-                items[fill[b]] = p
-                fill[b] += 1
-    return start[n_bands]
+                r = count[b * DEPTH_BUCKETS + k]
+                count[b * DEPTH_BUCKETS + k] += 1
+                rec_id[r] = p
+                rec_box[r, 0], rec_box[r, 1], rec_box[r, 2], rec_box[r, 3] = i0[p], i1[p], j0[p], j1[p]
+                rec_z[r] = zmin[p]
+                rec_c[r, 0], rec_c[r, 1], rec_c[r, 2] = positions[p, 0], positions[p, 1], positions[p, 2]
+    return total
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _cast_bands(positions, r2, f, width, height, i0, i1, j0, j1, zmin, band_rows, n_bands,
-                start, items, n_workers, hit_t, hit_id):
+def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, rec_box, rec_z,
+                rec_c, n_workers, hit_t, hit_id):
     for w in prange(n_workers):
         for band in range(w, n_bands, n_workers):  # interleaved: balanced across workers
             row0, row1 = band * band_rows, min((band + 1) * band_rows, height) - 1
-            for k in range(start[band], start[band + 1]):
-                p = items[k]
-                ja, jb = max(j0[p], row0), min(j1[p], row1)
+            for k in range(band_start[band], band_start[band + 1]):
+                p = rec_id[k]
+                ia, ib = rec_box[k, 0], rec_box[k, 1]
+                ja, jb = max(rec_box[k, 2], row0), min(rec_box[k, 3], row1)
                 # hit_t is the camera depth of the hit (the unnormalized direction has unit
                 # component along the view): skip a sphere whose nearest depth lies behind
                 # everything already hit in its footprint (front-to-back order makes it common)
+                zmin = rec_z[k]
                 occluded = True
                 for j in range(ja, jb + 1):
-                    for i in range(i0[p], i1[p] + 1):
-                        if hit_t[j * width + i] >= zmin[p]:
+                    for i in range(ia, ib + 1):
+                        if hit_t[j * width + i] >= zmin:
                             occluded = False
                             break
                     if not occluded:
                         break
                 if occluded:
                     continue
-                cx, cy, cz = positions[p, 0], positions[p, 1], positions[p, 2]
+                cx, cy, cz = rec_c[k, 0], rec_c[k, 1], rec_c[k, 2]
                 for j in range(ja, jb + 1):
-                    for i in range(i0[p], i1[p] + 1):
+                    for i in range(ia, ib + 1):
                         # unnormalized direction: t is in units of |d|, the same for every
                         # sphere of this pixel, so comparisons hold; scaled to m at the end
                         ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
@@ -161,26 +158,28 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     where nothing is hit) and particle ids [h * w] (-1)."""
     pos = as_positions(positions)
     n = len(pos)
-    i0, i1 = np.empty(n, np.int64), np.empty(n, np.int64)
-    j0, j1 = np.empty(n, np.int64), np.empty(n, np.int64)
+    i0, i1 = np.empty(n, np.int32), np.empty(n, np.int32)
+    j0, j1 = np.empty(n, np.int32), np.empty(n, np.int32)
     zmin = np.empty(n)
     _bounds(pos, radius, frame, width, height, i0, i1, j0, j1, zmin)
-    order = np.empty(n, np.int64)
-    order = order[:_depth_order(zmin, i0, i1, order)]
     n_workers = numba.get_num_threads()
     n_bands = min(height, BANDS_PER_WORKER * n_workers)
     band_rows = -(-height // n_bands)
     n_bands = -(-height // band_rows)
-    start = np.zeros(n_bands + 1, np.int64)
-    items = np.empty(n + n // 4, np.int64)
-    needed = _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items)
-    if needed > len(items):
-        items = np.empty(needed, np.int64)
-        _bin_bands(order, j0, j1, i0, i1, band_rows, n_bands, start, items)
+    band_start = np.zeros(n_bands + 1, np.int64)
+    capacity = n + n // 4 + 16
+    for _ in range(2):
+        rec_id, rec_box = np.empty(capacity, np.int64), np.empty((capacity, 4), np.int32)
+        rec_z, rec_c = np.empty(capacity), np.empty((capacity, 3))
+        needed = _bin(pos, i0, i1, j0, j1, zmin, band_rows, n_bands, band_start, rec_id,
+                      rec_box, rec_z, rec_c)
+        if needed <= capacity:
+            break
+        capacity = needed
     hit_t = np.full(width * height, np.inf)
     hit_id = np.full(width * height, -1, np.int64)
-    _cast_bands(pos, radius * radius, frame, width, height, i0, i1, j0, j1, zmin, band_rows,
-                n_bands, start, items, n_workers, hit_t, hit_id)
+    _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
+                rec_box, rec_z, rec_c, n_workers, hit_t, hit_id)
     _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id
 

@@ -1,7 +1,10 @@
 """Repartition a step's particles into spatially disjoint bricks balanced by count.
 
 k-d splits at the median along the longest axis of each node's particles, to a power-of-two
-number of bricks. A particle belongs to the brick that holds its center; a sphere that
+number of bricks. The split planes are the exact medians of an evenly strided sample of at
+most SAMPLE particles (all of them when there are fewer), and every particle is then
+classified by the planes in parallel: linear time, balanced to within the sampling error
+(about 1% per brick at 8 bricks). A particle belongs to the brick that holds its center; a sphere that
 crosses a brick face is also referenced (as a ghost) by every other brick its bounding box
 touches, so no brick cuts a sphere off.
 """
@@ -11,9 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 MAX_BRICKS = 64
+SAMPLE = 1 << 16  # particles that choose the split planes
 
 
 def as_positions(positions: np.ndarray) -> np.ndarray:
@@ -65,8 +69,9 @@ def _select(order, s, e, k, positions, axis):
 
 
 @njit(cache=True, nogil=True)
-def _kd_level(positions, order, starts, boxes, new_starts, new_boxes):
-    """Split every node of one level at its median along its particles' longest axis."""
+def _kd_level(positions, order, starts, boxes, new_starts, new_boxes, axes, planes):
+    """Split every node of one level at its median along its particles' longest axis;
+    records each node's axis and plane."""
     for node in range(starts.shape[0] - 1):
         s, e = starts[node], starts[node + 1]
         k = s + (e - s) // 2
@@ -85,6 +90,7 @@ def _kd_level(positions, order, starts, boxes, new_starts, new_boxes):
         else:
             plane = 0.5 * (boxes[node, 0, axis] + boxes[node, 1, axis])
         plane = min(max(plane, boxes[node, 0, axis]), boxes[node, 1, axis])
+        axes[node], planes[node] = axis, plane
         new_starts[2 * node], new_starts[2 * node + 1] = s, k
         new_boxes[2 * node] = boxes[node]
         new_boxes[2 * node + 1] = boxes[node]
@@ -93,23 +99,56 @@ def _kd_level(positions, order, starts, boxes, new_starts, new_boxes):
     new_starts[-1] = starts[-1]
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _classify(positions, axes, planes, levels, leaf):
+    """Leaf (brick) index of every particle: descend the planes; below a plane goes left,
+    on or above it right (as the median element itself in the split)."""
+    for p in prange(positions.shape[0]):
+        node = 0
+        for _ in range(levels):
+            node = 2 * node + (1 if positions[p, axes[node]] < planes[node] else 2)
+        leaf[p] = node - ((1 << levels) - 1)
+
+
+@njit(cache=True, nogil=True)
+def _sort_by_leaf(leaf, n_leaves, order, bounds):
+    bounds[:] = 0
+    for p in range(leaf.shape[0]):
+        bounds[leaf[p] + 1] += 1
+    for b in range(n_leaves):
+        bounds[b + 1] += bounds[b]
+    fill = bounds[:n_leaves].copy()
+    for p in range(leaf.shape[0]):
+        order[fill[leaf[p]]] = p
+        fill[leaf[p]] += 1
+
+
 def kd_split(positions: np.ndarray, radius: float, levels: int
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Order particles by brick: returns order [n] int64, boxes [2**levels, 2, 3] (m) and
-    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]] (balanced halves).
+    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]].
 
     positions: [n, 3] float32 or float64, m."""
     n = len(positions)
-    order = np.arange(n, dtype=np.int64)
-    starts = np.array([0, n], dtype=np.int64)
+    sample = positions[::max(1, n // SAMPLE)]
+    sample_order = np.arange(len(sample), dtype=np.int64)
+    starts = np.array([0, len(sample)], dtype=np.int64)
     boxes = np.array([[positions.min(axis=0) - radius, positions.max(axis=0) + radius]],
                      dtype=np.float64)
-    for _ in range(levels):
+    axes = np.zeros(max(1, (1 << levels) - 1), np.int64)  # heap order: children 2i+1, 2i+2
+    planes = np.zeros(len(axes))
+    for level in range(levels):
+        first = (1 << level) - 1
         new_starts = np.empty(2 * (len(starts) - 1) + 1, np.int64)
         new_boxes = np.empty((2 * len(boxes), 2, 3))
-        _kd_level(positions, order, starts, boxes, new_starts, new_boxes)
+        _kd_level(sample, sample_order, starts, boxes, new_starts, new_boxes,
+                  axes[first:first + len(boxes)], planes[first:first + len(boxes)])
         starts, boxes = new_starts, new_boxes
-    return order, boxes, starts
+    leaf = np.empty(n, np.int64)
+    _classify(positions, axes, planes, levels, leaf)
+    order, bounds = np.empty(n, np.int64), np.empty(len(boxes) + 1, np.int64)
+    _sort_by_leaf(leaf, len(boxes), order, bounds)
+    return order, boxes, bounds
 
 
 @njit(cache=True, nogil=True)

@@ -1,10 +1,11 @@
 """MPM throughput benchmark: one JSON line per scene (13k, 100k, ~1M particles).
 
-    python -P bench/sim.py [--threads N] [--steps-13k S] [--steps-100k S] [--steps-1m S]
+    python -m bench.sim [--threads N] [--steps-13k S] [--steps-100k S] [--steps-1m S]
 
-Run with -P (safe path): otherwise this file, named sim.py, shadows the sim package.
-JIT compilation and the first step are excluded from the timing; the timed steps use the
-CFL time step of the collapsing column (Drucker-Prager sand) from rest.
+Run as a module from the repository root (as the Makefile does). JIT compilation and the
+warm-up steps are excluded from the timing; the timed steps use the CFL time step of the
+collapsing column (Drucker-Prager sand) from rest. `phase_fraction` splits the timed wall
+time into binning, P2G, grid update and G2P (with the return mapping).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 
 import numba
 
-from sim.driver import Simulator
+from sim.driver import PhaseTimes, Simulator
 from sim.scene import builtin_scene_path, load_scene
 
 SCENES = (("column_13k", 200), ("column_100k", 50), ("column_1m", 5))
@@ -26,6 +27,7 @@ def bench_scene(name: str, steps: int, threads: int) -> dict:
     sim = Simulator(load_scene(builtin_scene_path(name)), threads=threads)
     for _ in range(WARMUP_STEPS):  # compile (or load the cache) and touch memory
         sim.step(sim.stable_dt())
+    sim.times = PhaseTimes()
     t0 = time.perf_counter()
     for _ in range(steps):
         sim.step(sim.stable_dt())
@@ -33,7 +35,9 @@ def bench_scene(name: str, steps: int, threads: int) -> dict:
     n = sim.particles.n
     return {"bench": "sim", "particles": n, "threads": threads, "steps": steps,
             "seconds": round(seconds, 4), "particle_steps_per_s": round(n * steps / seconds),
-            "material": "drucker_prager", "scene": name}
+            "material": "drucker_prager", "scene": name,
+            "phase_fraction": {k: round(getattr(sim.times, k) / seconds, 3)
+                               for k in ("bin", "p2g", "grid", "g2p")}}
 
 
 def main() -> None:

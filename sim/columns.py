@@ -26,6 +26,7 @@ class ColumnSpec:
     youngs_modulus_pa: float = 1.0e6
     poisson_ratio: float = 0.3
     friction_angle_deg: float = 30.0
+    dp_cone: str = "plane_strain"  # sim.scene.DPCone value
     floor_friction: float = 0.5
     side_friction: float = 0.0
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
@@ -60,6 +61,7 @@ density_kg_m3 = {float(c.density_kg_m3)!r}
 youngs_modulus_pa = {float(c.youngs_modulus_pa)!r}
 poisson_ratio = {float(c.poisson_ratio)!r}
 friction_angle_deg = {float(c.friction_angle_deg)!r}
+dp_cone = "{c.dp_cone}"
 
 [[body]]
 shape = "box"

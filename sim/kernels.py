@@ -23,14 +23,18 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from sim.plasticity import dp_project
-from sim.svd import svd3
+from sim.plasticity import elastoplastic_update
 
 BLOCK_CELLS = 4  # block edge in cells; >= 2 keeps same-colored blocks' stencils disjoint
 N_COLORS = 8
 G2P_CHUNK = 512  # particles per parallel work item in G2P (scratch allocated per chunk)
 APIC_D_INV = 4.0  # inverse of the quadratic B-spline inertia tensor D = dx^2 / 4 (per dx^2)
 WALL_TOL_CELLS = 1e-6  # a node this close (in cells) to a wall plane counts as on it
+# LLVM fast-math for P2G: contraction (FMA), reassociation, reciprocal and signed-zero
+# freedom. The generated code does not depend on the thread count, so results stay bitwise
+# independent of it. Not on G2P: there even these flags let LLVM fold away the
+# finiteness checks (the NaN guard test failed), so G2P stays IEEE-exact.
+FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 
 FIELD_POSITION, FIELD_VELOCITY, FIELD_AFFINE, FIELD_DEFORMATION, FIELD_STRESS = range(5)
 FIELD_NAMES = ("position", "velocity", "affine_velocity", "deformation_gradient", "stress")
@@ -109,7 +113,7 @@ def _weights(X, w):
         w[a, 2] = 0.5 * (fx - 0.5) ** 2
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
 def p2g(x, v, C, tau, mass, vol0, order, block_start, color_start, color_blocks, grid, x0,
         inv_dx, dt):
     """Particle to grid: scatter mass and APIC momentum plus the MLS stress impulse
@@ -229,6 +233,7 @@ def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats
         sig = np.empty(3)
         eps = np.empty(3)
         S = np.empty((3, 3))
+        Q = np.empty((3, 3))
         cvmax2 = 0.0
         cbad = 0
         cclamp = 0
@@ -296,23 +301,11 @@ def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats
                     for s in range(3):
                         acc += dt * C[p, r, s] * F[p, s, q]
                     Fn[r, q] = acc
-            svd3(Fn, U, sig, V, S)
-            dp_project(sig, eps, lam, mu, alpha)
-            tr = eps[0] + eps[1] + eps[2]
-            for s in range(3):
-                sig[s] = math.exp(eps[s])  # projected stretch
-                eps[s] = 2.0 * mu * eps[s] + lam * tr  # principal Kirchhoff stress, Pa
+            elastoplastic_update(Fn, F[p], tau[p], lam, mu, alpha, S, Q, U, V, sig, eps)
             fsum = 0.0
             for r in range(3):
                 for q in range(3):
-                    fe = 0.0
-                    te = 0.0
-                    for s in range(3):
-                        fe += U[r, s] * sig[s] * V[q, s]
-                        te += U[r, s] * eps[s] * U[q, s]
-                    F[p, r, q] = fe
-                    tau[p, r, q] = te
-                    fsum += fe + te
+                    fsum += F[p, r, q] + tau[p, r, q]
             if not math.isfinite(fsum):
                 cbad += 1
         chunk_stats[ch, 0] = cvmax2

@@ -76,7 +76,7 @@ class TrajectoryWriter:
         a["material_table"] = json.dumps({
             "model": "drucker_prager", "density_kg_m3": mat.density_kg_m3,
             "youngs_modulus_pa": mat.youngs_modulus_pa, "poisson_ratio": mat.poisson_ratio,
-            "friction_angle_deg": mat.friction_angle_deg})
+            "friction_angle_deg": mat.friction_angle_deg, "dp_cone": mat.dp_cone.value})
         f.swmr_mode = True
         f.flush()
 

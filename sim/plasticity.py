@@ -21,8 +21,13 @@ import math
 import numpy as np
 from numba import njit
 
+from sim.svd import svd3, sym_eig3
+
 DIM = 3
 SIGMA_MIN = 1e-4  # clamp for singular values before log (an inverted/collapsed F^E)
+# Jacobi stop for the stress path: off-diagonal <= 1e-11 * trace of b, i.e. stress errors
+# ~1e-11 relative; saves the last (fourth) sweep that the SVD's 1e-30 needs near F = I.
+STRESS_JACOBI_REL_TOL = 1e-22
 
 
 @njit(cache=True, inline="always")
@@ -35,12 +40,9 @@ def dp_yield(e0, e1, e2, lam, mu, alpha):
 
 
 @njit(cache=True, inline="always")
-def dp_project(sig, eps, lam, mu, alpha):
-    """Principal stretches sig [3] -> projected Hencky strains eps [3]; returns dgamma >= 0
-    (plastic strain increment, 0 for an elastic state)."""
-    e0 = math.log(max(sig[0], SIGMA_MIN))
-    e1 = math.log(max(sig[1], SIGMA_MIN))
-    e2 = math.log(max(sig[2], SIGMA_MIN))
+def dp_return(e0, e1, e2, eps, lam, mu, alpha):
+    """Principal Hencky strains (e0, e1, e2) -> projected strains eps [3]; returns dgamma
+    >= 0 (plastic strain increment, 0 for an elastic state)."""
     tr = e0 + e1 + e2
     m = tr / DIM
     d0, d1, d2 = e0 - m, e1 - m, e2 - m
@@ -61,6 +63,14 @@ def dp_project(sig, eps, lam, mu, alpha):
     return dgamma
 
 
+@njit(cache=True, inline="always")
+def dp_project(sig, eps, lam, mu, alpha):
+    """Principal stretches sig [3] -> projected Hencky strains eps [3]; returns dgamma >= 0
+    (plastic strain increment, 0 for an elastic state)."""
+    return dp_return(math.log(max(sig[0], SIGMA_MIN)), math.log(max(sig[1], SIGMA_MIN)),
+                     math.log(max(sig[2], SIGMA_MIN)), eps, lam, mu, alpha)
+
+
 def dp_project_numpy(sig: np.ndarray, lam: float, mu: float, alpha: float) -> np.ndarray:
     """Vectorized NumPy version: sig [n, 3] -> projected Hencky strains [n, 3]."""
     e = np.log(np.maximum(sig, SIGMA_MIN))
@@ -73,3 +83,85 @@ def dp_project_numpy(sig: np.ndarray, lam: float, mu: float, alpha: float) -> np
         shear = e - np.where(dev > 0.0, dgamma / dev, 0.0) * d
     out = np.where(dgamma > 0.0, shear, e)
     return np.where(tip, 0.0, out)
+
+
+@njit(cache=True, inline="always")
+def _write_projected(Fn, U, sig, V, eps, F_out, tau_out, lam, mu):
+    """F_out = U diag(exp eps) V^T and tau_out = U diag(2 mu eps + lam tr eps) U^T."""
+    tr = eps[0] + eps[1] + eps[2]
+    for s in range(3):
+        sig[s] = math.exp(eps[s])
+        eps[s] = 2.0 * mu * eps[s] + lam * tr  # principal Kirchhoff stress, Pa
+    for r in range(3):
+        for q in range(3):
+            fe = 0.0
+            te = 0.0
+            for s in range(3):
+                fe += U[r, s] * sig[s] * V[q, s]
+                te += U[r, s] * eps[s] * U[q, s]
+            F_out[r, q] = fe
+            tau_out[r, q] = te
+
+
+@njit(cache=True, inline="always")
+def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, eps):
+    """Trial elastic gradient Fn [3, 3] -> projected F^E (F_out [3, 3]) and Kirchhoff stress
+    (tau_out [3, 3], Pa). B, Q, U, V [3, 3] and sig, eps [3] are scratch.
+
+    Uses the left stretch b = Fn Fn^T = Q diag(sigma^2) Q^T: eps = log(sigma) and
+    tau = Q diag(2 mu eps + lam tr eps) Q^T need Q and sigma only, and the projected
+    F^E = U diag(exp eps) V^T equals Q diag(exp(eps) / sigma) Q^T Fn (since
+    V^T = diag(1 / sigma) Q^T Fn), so no V and no Gram-Schmidt. An elastic trial state
+    keeps Fn exactly. The principal strains are still needed for the yield check and the
+    stress, so this eigen-decomposition cannot be skipped. An inverted or nearly collapsed
+    Fn (det <= 0 or a stretch below SIGMA_MIN) takes the full SVD path."""
+    det = (Fn[0, 0] * (Fn[1, 1] * Fn[2, 2] - Fn[1, 2] * Fn[2, 1])
+           - Fn[0, 1] * (Fn[1, 0] * Fn[2, 2] - Fn[1, 2] * Fn[2, 0])
+           + Fn[0, 2] * (Fn[1, 0] * Fn[2, 1] - Fn[1, 1] * Fn[2, 0]))
+    for i in range(3):
+        for j in range(i, 3):
+            acc = 0.0
+            for k in range(3):
+                acc += Fn[i, k] * Fn[j, k]
+            B[i, j] = acc
+            B[j, i] = acc
+    sym_eig3(B, Q, STRESS_JACOBI_REL_TOL)
+    l0, l1, l2 = B[0, 0], B[1, 1], B[2, 2]  # squared stretches
+    if not (det > 0.0 and min(l0, min(l1, l2)) > SIGMA_MIN * SIGMA_MIN):
+        svd3(Fn, U, sig, V, B)
+        dp_project(sig, eps, lam, mu, alpha)
+        _write_projected(Fn, U, sig, V, eps, F_out, tau_out, lam, mu)
+        return
+    dgamma = dp_return(0.5 * math.log(l0), 0.5 * math.log(l1), 0.5 * math.log(l2), eps,
+                       lam, mu, alpha)
+    tr = eps[0] + eps[1] + eps[2]
+    if dgamma > 0.0:  # U diag(exp(eps) / sigma) U^T, U = Q
+        sig[0] = math.exp(eps[0]) / math.sqrt(l0)
+        sig[1] = math.exp(eps[1]) / math.sqrt(l1)
+        sig[2] = math.exp(eps[2]) / math.sqrt(l2)
+        for r in range(3):
+            for q in range(r, 3):
+                acc = 0.0
+                for s in range(3):
+                    acc += Q[r, s] * sig[s] * Q[q, s]
+                U[r, q] = acc
+                U[q, r] = acc
+        for r in range(3):
+            for q in range(3):
+                acc = 0.0
+                for s in range(3):
+                    acc += U[r, s] * Fn[s, q]
+                F_out[r, q] = acc
+    else:
+        for r in range(3):
+            for q in range(3):
+                F_out[r, q] = Fn[r, q]
+    for s in range(3):
+        eps[s] = 2.0 * mu * eps[s] + lam * tr  # principal Kirchhoff stress, Pa
+    for r in range(3):
+        for q in range(r, 3):
+            acc = 0.0
+            for s in range(3):
+                acc += Q[r, s] * eps[s] * Q[q, s]
+            tau_out[r, q] = acc
+            tau_out[q, r] = acc

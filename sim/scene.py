@@ -29,6 +29,21 @@ class SceneError(ValueError):
     """A scene file is invalid; the message names the offending key."""
 
 
+class DPCone(Enum):
+    """How the Drucker-Prager cone is fitted to the Mohr-Coulomb friction angle phi.
+
+    COMPRESSION: Klár et al. 2016, M = 6 sin(phi) / (3 - sin(phi)) (outer cone, matches
+    triaxial compression). PLANE_STRAIN: M = sqrt(3) sin(phi), the match in plane strain
+    for this return mapping's non-dilatant flow (see sim/README.md, "Drucker-Prager cone");
+    M is the slope q / p of the cone in (p, q) space."""
+
+    COMPRESSION = "compression"
+    PLANE_STRAIN = "plane_strain"
+
+
+DEFAULT_DP_CONE = DPCone.PLANE_STRAIN
+
+
 class Shape(Enum):
     BOX = "box"
     CYLINDER = "cylinder"
@@ -42,6 +57,7 @@ class Material:
     youngs_modulus_pa: float
     poisson_ratio: float
     friction_angle_deg: float
+    dp_cone: DPCone = DEFAULT_DP_CONE
 
     @property
     def shear_modulus_pa(self) -> float:
@@ -59,10 +75,19 @@ class Material:
         return math.sqrt(modulus / self.density_kg_m3)
 
     @property
-    def dp_alpha(self) -> float:
-        """Klár et al. 2016 cone slope: sqrt(2/3) * 2 sin(phi) / (3 - sin(phi))."""
+    def dp_slope_m(self) -> float:
+        """Cone slope M = q / p (q = sqrt(3/2) |dev tau|, p = -tr(tau) / 3) for dp_cone."""
         s = math.sin(math.radians(self.friction_angle_deg))
-        return math.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s)
+        if self.dp_cone is DPCone.COMPRESSION:
+            return 6.0 * s / (3.0 - s)
+        return math.sqrt(3.0) * s
+
+    @property
+    def dp_alpha(self) -> float:
+        """Klár et al. 2016 alpha of the yield |dev eps| + (3 lam + 2 mu)/(2 mu) tr(eps) alpha
+        <= 0, i.e. |dev tau| <= 3 alpha p: alpha = M / (3 sqrt(3/2)). For COMPRESSION this
+        is Klár's sqrt(2/3) * 2 sin(phi) / (3 - sin(phi))."""
+        return self.dp_slope_m / (3.0 * math.sqrt(1.5))
 
 
 @dataclass(frozen=True)
@@ -167,9 +192,14 @@ def _positive(value: float, name: str) -> float:
 def _parse_material(t: dict) -> Material:
     _check_keys(
         t,
-        {"density_kg_m3", "youngs_modulus_pa", "poisson_ratio", "friction_angle_deg"},
+        {"density_kg_m3", "youngs_modulus_pa", "poisson_ratio", "friction_angle_deg",
+         "dp_cone"},
         "material",
     )
+    cone = _get(t, "dp_cone", "material", "str", default=DEFAULT_DP_CONE.value)
+    if cone not in {c.value for c in DPCone}:
+        raise SceneError(f"key 'material.dp_cone' must be one of "
+                         f"{[c.value for c in DPCone]}, got {cone!r}")
     m = Material(
         density_kg_m3=_positive(_get(t, "density_kg_m3", "material", "float"),
                                 "material.density_kg_m3"),
@@ -177,6 +207,7 @@ def _parse_material(t: dict) -> Material:
                                     "material.youngs_modulus_pa"),
         poisson_ratio=_get(t, "poisson_ratio", "material", "float"),
         friction_angle_deg=_get(t, "friction_angle_deg", "material", "float"),
+        dp_cone=DPCone(cone),
     )
     if not 0.0 <= m.poisson_ratio < 0.5:
         raise SceneError(f"key 'material.poisson_ratio' must be in [0, 0.5), got {m.poisson_ratio}")

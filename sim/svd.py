@@ -47,6 +47,25 @@ def _rotate(S, V, p, q):
         V[k, q] = s * vkp + c * vkq
 
 
+@njit(cache=True, inline="always")
+def sym_eig3(S, Q, rel_tol):
+    """Cyclic Jacobi on the symmetric S [3, 3] (overwritten: its diagonal ends holding the
+    eigenvalues, in no particular order) until off-diagonal^2 <= rel_tol * trace^2; Q [3, 3]
+    receives the eigenvectors as columns (S_in = Q diag(S) Q^T). No allocation."""
+    for i in range(3):
+        for j in range(3):
+            Q[i, j] = 1.0 if i == j else 0.0
+    scale = S[0, 0] + S[1, 1] + S[2, 2]
+    tol = rel_tol * scale * scale + TINY
+    for _ in range(JACOBI_MAX_SWEEPS):
+        off = S[0, 1] * S[0, 1] + S[0, 2] * S[0, 2] + S[1, 2] * S[1, 2]
+        if off <= tol:
+            break
+        _rotate(S, Q, 0, 1)
+        _rotate(S, Q, 0, 2)
+        _rotate(S, Q, 1, 2)
+
+
 @njit(cache=True)
 def svd3(F, U, sig, V, S):
     """Write U [3,3], sig [3], V [3,3] (float64) with F = U diag(sig) V^T. S [3,3] is
@@ -57,16 +76,7 @@ def svd3(F, U, sig, V, S):
             for k in range(3):
                 acc += F[k, i] * F[k, j]
             S[i, j] = acc
-            V[i, j] = 1.0 if i == j else 0.0
-    scale = S[0, 0] + S[1, 1] + S[2, 2]
-    tol = JACOBI_REL_TOL * scale * scale + TINY
-    for _ in range(JACOBI_MAX_SWEEPS):
-        off = S[0, 1] * S[0, 1] + S[0, 2] * S[0, 2] + S[1, 2] * S[1, 2]
-        if off <= tol:
-            break
-        _rotate(S, V, 0, 1)
-        _rotate(S, V, 0, 2)
-        _rotate(S, V, 1, 2)
+    sym_eig3(S, V, JACOBI_REL_TOL)
     # sort eigenvalues (squared singular values) in decreasing order, permuting V
     for i in range(2):
         best = i

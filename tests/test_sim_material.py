@@ -7,7 +7,7 @@ import pytest
 from numba import njit
 
 from sim.plasticity import dp_project, dp_project_numpy, dp_yield
-from sim.scene import Material
+from sim.scene import DPCone, Material
 from sim.svd import svd3
 
 # tolerances (absolute, on O(1) quantities)
@@ -125,5 +125,27 @@ def test_dp_projection_lands_inside_cone():
 def test_dp_alpha_formula():
     for phi in (10.0, 30.0, 60.0):
         s = math.sin(math.radians(phi))
-        m = Material(1800.0, 1e6, 0.3, phi)
-        assert m.dp_alpha == pytest.approx(math.sqrt(2 / 3) * 2 * s / (3 - s))
+        m = Material(1800.0, 1e6, 0.3, phi, DPCone.COMPRESSION)
+        assert m.dp_alpha == pytest.approx(math.sqrt(2 / 3) * 2 * s / (3 - s))  # Klár 2016
+        assert Material(1800.0, 1e6, 0.3, phi).dp_alpha == pytest.approx(math.sqrt(2) * s / 3)
+
+
+@pytest.mark.parametrize("cone", list(DPCone))
+def test_plane_strain_yield_matches_mohr_coulomb(cone):
+    """Yielded plane-strain state (intermediate principal stress = mean stress, as the
+    non-dilatant flow requires for eps_yy = 0): the Mohr-Coulomb angle sin(phi_mc) =
+    (s1 - s3) / -(s1 + s3) equals phi for PLANE_STRAIN, and exceeds it (about 44 deg for
+    phi = 30 deg) for Klár's COMPRESSION cone."""
+    phi = 30.0
+    mat = Material(1800.0, 1e6, 0.3, phi, cone)
+    lam, mu, alpha = mat.lame_lambda_pa, mat.shear_modulus_pa, mat.dp_alpha
+    m, d = -0.01, 0.05  # mean and deviatoric Hencky strain: far outside the cone
+    sig = np.exp(np.array([[m + d, m, m - d]]))
+    eps = dp_project_numpy(sig, lam, mu, alpha)[0]
+    t = 2.0 * mu * eps + lam * eps.sum()  # principal Kirchhoff stress, Pa
+    sin_mc = (t[0] - t[2]) / -(t[0] + t[2])
+    expect = math.sin(math.radians(phi)) if cone is DPCone.PLANE_STRAIN else mat.dp_slope_m / 3**0.5
+    assert sin_mc == pytest.approx(expect, rel=DP_TOL * 1e3)
+    assert t[1] == pytest.approx(t.mean(), rel=DP_TOL * 1e3)
+    if cone is DPCone.COMPRESSION:
+        assert math.degrees(math.asin(sin_mc)) > 43.0

@@ -21,7 +21,7 @@ from render_server.bricks import as_positions
 from render_server.camera import RayFrame, pixel_ray_unnormalized
 
 BANDS_PER_WORKER = 16
-DEPTH_BUCKETS = 4096  # depth ordering resolution (front-to-back culling only; not correctness)
+DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; not correctness)
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 
 
@@ -66,43 +66,61 @@ def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
         j0[p], j1[p] = min(max(c, 0), height), max(min(d, height - 1), -1)
 
 
-@njit(cache=True, nogil=True)
-def _bin(positions, i0, i1, j0, j1, zmin, band_rows, n_bands, band_start, rec_id, rec_box,
-         rec_z, rec_c):
-    """Counting sort of sphere references by (row band, nearest-depth bucket), reading the
-    spheres in index order and writing compact records (id, footprint, zmin, center) band
-    by band, front to back within a band. Returns the number of records; writes nothing
-    past the arrays' capacity (the caller reallocates and calls again)."""
-    n = zmin.shape[0]
-    lo, hi = math.inf, -math.inf
-    for p in range(n):
-        if i0[p] <= i1[p] and j0[p] <= j1[p]:
-            lo, hi = min(lo, zmin[p]), max(hi, zmin[p])
+@njit(parallel=True, cache=True, nogil=True)
+def _bin_count(i0, i1, j0, j1, zmin, lo, scale, band_rows, counts):
+    """counts[c, band * DEPTH_BUCKETS + bucket]: references of particle chunk c by key."""
+    n_chunks, n = counts.shape[0], zmin.shape[0]
+    for c in prange(n_chunks):
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            if i0[p] <= i1[p] and j0[p] <= j1[p]:
+                k = int((zmin[p] - lo) * scale)
+                for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
+                    counts[c, b * DEPTH_BUCKETS + k] += 1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, rec_id, rec_box,
+              rec_z, rec_c):
+    """Write each chunk's references at its offsets: compact records (id, footprint, zmin,
+    center) grouped by band, front to back within a band."""
+    n_chunks, n = offsets.shape[0], zmin.shape[0]
+    for c in prange(n_chunks):
+        fill = offsets[c].copy()
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            if i0[p] <= i1[p] and j0[p] <= j1[p]:
+                k = int((zmin[p] - lo) * scale)
+                for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
+                    r = fill[b * DEPTH_BUCKETS + k]
+                    fill[b * DEPTH_BUCKETS + k] += 1
+                    rec_id[r] = p
+                    rec_box[r, 0], rec_box[r, 1] = i0[p], i1[p]
+                    rec_box[r, 2], rec_box[r, 3] = j0[p], j1[p]
+                    rec_z[r] = zmin[p]
+                    rec_c[r, 0], rec_c[r, 1] = positions[p, 0], positions[p, 1]
+                    rec_c[r, 2] = positions[p, 2]
+
+
+def _bin(positions, i0, i1, j0, j1, zmin, band_rows, n_bands):
+    """Counting sort of sphere references by (row band, nearest-depth bucket) in parallel
+    over particle chunks (stable within a chunk). Returns band_start [n_bands + 1] and the
+    records (id, footprint, zmin, center) band by band, front to back within a band."""
+    visible = (i0 <= i1) & (j0 <= j1)
+    z = zmin[visible]
+    lo, hi = (float(z.min()), float(z.max())) if z.size else (0.0, 0.0)
     scale = (DEPTH_BUCKETS - 1) / (hi - lo) if hi > lo else 0.0
-    count = np.zeros(n_bands * DEPTH_BUCKETS + 1, np.int64)
-    for p in range(n):
-        if i0[p] <= i1[p] and j0[p] <= j1[p]:
-            k = int((zmin[p] - lo) * scale)
-            for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
-                count[b * DEPTH_BUCKETS + k + 1] += 1
-    for c in range(n_bands * DEPTH_BUCKETS):
-        count[c + 1] += count[c]
-    total = count[n_bands * DEPTH_BUCKETS]
-    for b in range(n_bands + 1):
-        band_start[b] = count[b * DEPTH_BUCKETS]
-    if rec_id.shape[0] < total:
-        return total
-    for p in range(n):
-        if i0[p] <= i1[p] and j0[p] <= j1[p]:
-            k = int((zmin[p] - lo) * scale)
-            for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
-                r = count[b * DEPTH_BUCKETS + k]
-                count[b * DEPTH_BUCKETS + k] += 1
-                rec_id[r] = p
-                rec_box[r, 0], rec_box[r, 1], rec_box[r, 2], rec_box[r, 3] = i0[p], i1[p], j0[p], j1[p]
-                rec_z[r] = zmin[p]
-                rec_c[r, 0], rec_c[r, 1], rec_c[r, 2] = positions[p, 0], positions[p, 1], positions[p, 2]
-    return total
+    n_chunks = 4 * numba.get_num_threads()
+    counts = np.zeros((n_chunks, n_bands * DEPTH_BUCKETS), np.int64)
+    _bin_count(i0, i1, j0, j1, zmin, lo, scale, band_rows, counts)
+    totals = counts.sum(axis=0)
+    key_start = np.cumsum(totals) - totals
+    offsets = key_start[None, :] + np.cumsum(counts, axis=0) - counts
+    m = int(totals.sum())
+    band_start = np.append(key_start[::DEPTH_BUCKETS], m)
+    rec_id, rec_box = np.empty(m, np.int64), np.empty((m, 4), np.int32)
+    rec_z, rec_c = np.empty(m), np.empty((m, 3))
+    _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, rec_id, rec_box,
+              rec_z, rec_c)
+    return band_start, rec_id, rec_box, rec_z, rec_c
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -166,16 +184,8 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     n_bands = min(height, BANDS_PER_WORKER * n_workers)
     band_rows = -(-height // n_bands)
     n_bands = -(-height // band_rows)
-    band_start = np.zeros(n_bands + 1, np.int64)
-    capacity = n + n // 4 + 16
-    for _ in range(2):
-        rec_id, rec_box = np.empty(capacity, np.int64), np.empty((capacity, 4), np.int32)
-        rec_z, rec_c = np.empty(capacity), np.empty((capacity, 3))
-        needed = _bin(pos, i0, i1, j0, j1, zmin, band_rows, n_bands, band_start, rec_id,
-                      rec_box, rec_z, rec_c)
-        if needed <= capacity:
-            break
-        capacity = needed
+    band_start, rec_id, rec_box, rec_z, rec_c = _bin(pos, i0, i1, j0, j1, zmin, band_rows,
+                                                      n_bands)
     hit_t = np.full(width * height, np.inf)
     hit_id = np.full(width * height, -1, np.int64)
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,

@@ -30,7 +30,7 @@ from render_server.assemble import (
     AssembledStep,
     StepAssembler,
 )
-from render_server.render import encode_png, field_values, prepare, render
+from render_server.render import encode_png, prepare, render
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
@@ -90,7 +90,8 @@ def warm_up() -> None:
 
     view = View("warm-up", Camera((0.0, -1.0, 0.0), (0.0, 0.0, 0.0)), 8, 8)
     scene = prepare(np.zeros((2, 3), np.float32), 0.1)
-    render(scene, np.zeros(2), view, shadows=True)
+    for values in (np.zeros((2, 3), np.float32), np.zeros(2, np.float32)):  # as chunks carry
+        render(scene, values, view, shadows=True)
 
 
 class RenderServer:
@@ -185,7 +186,7 @@ class RenderServer:
                             f"has {sorted(step.fields)}")
                 continue
             t1 = time.perf_counter()
-            image = render(scene, field_values(step.fields[view.field]), view,
+            image = render(scene, step.fields[view.field], view,
                            self.options.shadows)
             render_s = time.perf_counter() - t1  # image synthesis; PNG encoding is output
             png = encode_png(image)

@@ -59,9 +59,10 @@ def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None,
     return Scene(pos, radius, bricks, build_grids(pos, radius, bricks) if grids else None)
 
 
-def field_values(field: np.ndarray) -> np.ndarray:
-    """Scalar per particle: the field itself [n], or its magnitude for [n, k]."""
-    return field if field.ndim == 1 else np.linalg.norm(field, axis=1)
+def field_columns(field: np.ndarray) -> np.ndarray:
+    """A field [n] or [n, k] as a C-contiguous [n, k] array (a view when possible); pixels
+    are colored by the value (k = 1) or the magnitude (k > 1) of their particle's row."""
+    return np.ascontiguousarray(field.reshape(len(field), -1))
 
 
 def key_light(view: View) -> np.ndarray:
@@ -71,7 +72,7 @@ def key_light(view: View) -> np.ndarray:
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _shade(f, width, height, hit_t, hit_id, positions, radius, values, lut, vmin, vmax,
+def _shade(f, width, height, hit_t, hit_id, positions, radius, field, lut, vmin, vmax,
            nan_rgb, light, shadowed, background, out):
     """Lambert + ambient shading of every pixel into out [h * w, 3] uint8."""
     scale = (lut.shape[0] - 1) / (vmax - vmin) if vmax > vmin else 0.0
@@ -91,7 +92,13 @@ def _shade(f, width, height, hit_t, hit_id, positions, radius, values, lut, vmin
             lambert = max(nx * light[0] + ny * light[1] + nz * light[2], 0.0)
             if shadowed[q]:
                 lambert = 0.0
-            v = values[p]
+            if field.shape[1] == 1:
+                v = float(field[p, 0])
+            else:
+                acc = 0.0
+                for c in range(field.shape[1]):
+                    acc += float(field[p, c]) * float(field[p, c])
+                v = math.sqrt(acc)
             if math.isnan(v):
                 r, g, b = nan_rgb[0], nan_rgb[1], nan_rgb[2]
             else:
@@ -123,8 +130,9 @@ def _shadow_mask(scene: Scene, view: View, t: np.ndarray, ids: np.ndarray,
     return mask
 
 
-def render(scene: Scene, values: np.ndarray, view: View, shadows: bool = False) -> np.ndarray:
-    """The image [height, width, 3] uint8 of `view`: spheres colored by `values` [n] with the
+def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False) -> np.ndarray:
+    """The image [height, width, 3] uint8 of `view`: spheres colored by `field` ([n] values,
+    or [n, k] vectors by magnitude, computed only for visible particles) with the
     view's colormap and range, Lambert + ambient shading, optional shadows."""
     frame = ray_frame(view.camera, view.width, view.height)
     t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height)
@@ -134,7 +142,7 @@ def render(scene: Scene, values: np.ndarray, view: View, shadows: bool = False) 
     cmap = preset(view.colormap)
     out = np.empty((len(ids), 3), np.uint8)
     _shade(frame, view.width, view.height, t, ids, scene.positions, scene.radius,
-           np.ascontiguousarray(values, dtype=np.float64), cmap.lut(), float(view.range[0]),
+           field_columns(field), cmap.lut(), float(view.range[0]),
            float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
            np.asarray(view.background, np.float64), out)
     return out.reshape(view.height, view.width, 3)
@@ -163,5 +171,5 @@ def render_step(positions: np.ndarray, fields: dict[str, np.ndarray], radius: fl
         if view.field not in fields:
             raise KeyError(f"view {view.name!r} needs field {view.field!r}; the step has "
                            f"{sorted(fields)}")
-        images[view.name] = render(scene, field_values(fields[view.field]), view, shadows)
+        images[view.name] = render(scene, fields[view.field], view, shadows)
     return images, RenderTimes(t1 - t0, time.perf_counter() - t1)

@@ -17,69 +17,71 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from render_server.bricks import as_positions
+from render_server.bricks import as_positions, extent
 from render_server.camera import RayFrame, pixel_ray_unnormalized
 
 BANDS_PER_WORKER = 16
 DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; not correctness)
+CHUNKS_PER_WORKER = 4  # particle chunks per thread in the binning passes
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _bounds(positions, radius, f, width, height, i0, i1, j0, j1, zmin):
-    """Pixel column/row ranges [i0, i1] x [j0, j1] that can see each sphere (empty: i0 > i1)
-    and the sphere's nearest camera depth zmin (m along the view direction)."""
-    r = radius
-    for p in prange(positions.shape[0]):
-        rx = positions[p, 0] - f.position[0]
-        ry = positions[p, 1] - f.position[1]
-        rz = positions[p, 2] - f.position[2]
-        xc = rx * f.right[0] + ry * f.right[1] + rz * f.right[2]
-        yc = rx * f.up[0] + ry * f.up[1] + rz * f.up[2]
-        zc = rx * f.forward[0] + ry * f.forward[1] + rz * f.forward[2]
-        zmin[p] = zc - r
-        if f.perspective:
-            if zc + r <= 0.0:  # wholly behind the camera
-                i0[p], i1[p], j0[p], j1[p] = 1, 0, 1, 0
-                continue
-            if zc <= r * 1.000001:  # crosses the camera plane: any pixel may see it
-                i0[p], i1[p], j0[p], j1[p] = 0, width - 1, 0, height - 1
-                continue
-            den = zc * zc - r * r
-            sx = r * math.sqrt(xc * xc + den)
-            sy = r * math.sqrt(yc * yc + den)
-            gx_lo = (xc * zc - sx) / den / f.half_width
-            gx_hi = (xc * zc + sx) / den / f.half_width
-            gy_lo = (yc * zc - sy) / den / f.half_height
-            gy_hi = (yc * zc + sy) / den / f.half_height
-        else:
-            gx_lo, gx_hi = (xc - r) / f.half_width, (xc + r) / f.half_width
-            gy_lo, gy_hi = (yc - r) / f.half_height, (yc + r) / f.half_height
-        gx_lo, gx_hi = gx_lo - MARGIN_NDC, gx_hi + MARGIN_NDC
-        gy_lo, gy_hi = gy_lo - MARGIN_NDC, gy_hi + MARGIN_NDC
-        a = math.ceil((gx_lo + 1.0) * 0.5 * width - 0.5)
-        b = math.floor((gx_hi + 1.0) * 0.5 * width - 0.5)
-        c = math.ceil((1.0 - gy_hi) * 0.5 * height - 0.5)
-        d = math.floor((1.0 - gy_lo) * 0.5 * height - 0.5)
-        # clamped into [-1, size] first, so far-off footprints fit int32 and stay empty
-        i0[p], i1[p] = min(max(a, 0), width), max(min(b, width - 1), -1)
-        j0[p], j1[p] = min(max(c, 0), height), max(min(d, height - 1), -1)
+@njit(cache=True, nogil=True, inline="always")
+def _footprint(positions, p, r, f, width, height):
+    """Pixel column/row ranges (i0, i1, j0, j1) that can see sphere p (empty: i0 > i1) and
+    its nearest camera depth zmin (m along the view direction)."""
+    rx = positions[p, 0] - f.position[0]
+    ry = positions[p, 1] - f.position[1]
+    rz = positions[p, 2] - f.position[2]
+    xc = rx * f.right[0] + ry * f.right[1] + rz * f.right[2]
+    yc = rx * f.up[0] + ry * f.up[1] + rz * f.up[2]
+    zc = rx * f.forward[0] + ry * f.forward[1] + rz * f.forward[2]
+    if f.perspective:
+        if zc + r <= 0.0:  # wholly behind the camera
+            return 1, 0, 1, 0, zc - r
+        if zc <= r * 1.000001:  # crosses the camera plane: any pixel may see it
+            return 0, width - 1, 0, height - 1, zc - r
+        den = zc * zc - r * r
+        sx = r * math.sqrt(xc * xc + den)
+        sy = r * math.sqrt(yc * yc + den)
+        gx_lo = (xc * zc - sx) / den / f.half_width
+        gx_hi = (xc * zc + sx) / den / f.half_width
+        gy_lo = (yc * zc - sy) / den / f.half_height
+        gy_hi = (yc * zc + sy) / den / f.half_height
+    else:
+        gx_lo, gx_hi = (xc - r) / f.half_width, (xc + r) / f.half_width
+        gy_lo, gy_hi = (yc - r) / f.half_height, (yc + r) / f.half_height
+    a = math.ceil((gx_lo - MARGIN_NDC + 1.0) * 0.5 * width - 0.5)
+    b = math.floor((gx_hi + MARGIN_NDC + 1.0) * 0.5 * width - 0.5)
+    c = math.ceil((1.0 - gy_hi - MARGIN_NDC) * 0.5 * height - 0.5)
+    d = math.floor((1.0 - gy_lo + MARGIN_NDC) * 0.5 * height - 0.5)
+    # clamped into [-1, size], so far-off footprints fit int32 and stay empty
+    return (min(max(a, 0), width), max(min(b, width - 1), -1),
+            min(max(c, 0), height), max(min(d, height - 1), -1), zc - r)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bucket(z, zlo, zscale):
+    return min(max(int((z - zlo) * zscale), 0), DEPTH_BUCKETS - 1)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bin_count(i0, i1, j0, j1, zmin, lo, scale, band_rows, counts):
-    """counts[c, band * DEPTH_BUCKETS + bucket]: references of particle chunk c by key."""
-    n_chunks, n = counts.shape[0], zmin.shape[0]
+def _footprints(positions, r, f, width, height, zlo, zscale, band_rows, i0, i1, j0, j1, zmin,
+                counts):
+    """Footprint and nearest depth of every sphere, and counts[c, band * DEPTH_BUCKETS +
+    depth bucket] of the references of particle chunk c (one pass, chunks in parallel)."""
+    n_chunks, n = counts.shape[0], positions.shape[0]
     for c in prange(n_chunks):
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            i0[p], i1[p], j0[p], j1[p], zmin[p] = _footprint(positions, p, r, f, width, height)
             if i0[p] <= i1[p] and j0[p] <= j1[p]:
-                k = int((zmin[p] - lo) * scale)
+                k = _bucket(zmin[p], zlo, zscale)
                 for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
                     counts[c, b * DEPTH_BUCKETS + k] += 1
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, rec_id, rec_box,
+def _bin_fill(positions, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, rec_id, rec_box,
               rec_z, rec_c):
     """Write each chunk's references at its offsets: compact records (id, footprint, zmin,
     center) grouped by band, front to back within a band."""
@@ -88,7 +90,7 @@ def _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, re
         fill = offsets[c].copy()
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             if i0[p] <= i1[p] and j0[p] <= j1[p]:
-                k = int((zmin[p] - lo) * scale)
+                k = _bucket(zmin[p], zlo, zscale)
                 for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
                     r = fill[b * DEPTH_BUCKETS + k]
                     fill[b * DEPTH_BUCKETS + k] += 1
@@ -98,29 +100,6 @@ def _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, re
                     rec_z[r] = zmin[p]
                     rec_c[r, 0], rec_c[r, 1] = positions[p, 0], positions[p, 1]
                     rec_c[r, 2] = positions[p, 2]
-
-
-def _bin(positions, i0, i1, j0, j1, zmin, band_rows, n_bands):
-    """Counting sort of sphere references by (row band, nearest-depth bucket) in parallel
-    over particle chunks (stable within a chunk). Returns band_start [n_bands + 1] and the
-    records (id, footprint, zmin, center) band by band, front to back within a band."""
-    visible = (i0 <= i1) & (j0 <= j1)
-    z = zmin[visible]
-    lo, hi = (float(z.min()), float(z.max())) if z.size else (0.0, 0.0)
-    scale = (DEPTH_BUCKETS - 1) / (hi - lo) if hi > lo else 0.0
-    n_chunks = 4 * numba.get_num_threads()
-    counts = np.zeros((n_chunks, n_bands * DEPTH_BUCKETS), np.int64)
-    _bin_count(i0, i1, j0, j1, zmin, lo, scale, band_rows, counts)
-    totals = counts.sum(axis=0)
-    key_start = np.cumsum(totals) - totals
-    offsets = key_start[None, :] + np.cumsum(counts, axis=0) - counts
-    m = int(totals.sum())
-    band_start = np.append(key_start[::DEPTH_BUCKETS], m)
-    rec_id, rec_box = np.empty(m, np.int64), np.empty((m, 4), np.int32)
-    rec_z, rec_c = np.empty(m), np.empty((m, 3))
-    _bin_fill(positions, i0, i1, j0, j1, zmin, lo, scale, band_rows, offsets, rec_id, rec_box,
-              rec_z, rec_c)
-    return band_start, rec_id, rec_box, rec_z, rec_c
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -170,27 +149,51 @@ def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, re
                             hit_t[q], hit_id[q] = t, p
 
 
-def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, height: int
-         ) -> tuple[np.ndarray, np.ndarray]:
-    """Closest sphere hit per pixel, row-major from the top left: distances [h * w] (m, inf
-    where nothing is hit) and particle ids [h * w] (-1)."""
+def _depth_range(f: RayFrame, box: np.ndarray, radius: float) -> tuple[float, float]:
+    """Camera depths (m) bounding every sphere of the box [2, 3] (m), for depth buckets."""
+    corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1)
+                        for k in (0, 1)])
+    depth = (corners - f.position) @ f.forward
+    return float(depth.min()) - radius, float(depth.max())
+
+
+def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, height: int,
+         box: np.ndarray | None = None, metres: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Closest sphere hit per pixel, row-major from the top left: distances [h * w] and
+    particle ids [h * w] (-1 where nothing is hit; distance inf). Distances are in m, or with
+    metres=False the camera depth of the hit (m along the view direction, the parameter of
+    `pixel_ray_unnormalized`). box [2, 3] (m) bounds the positions if known."""
     pos = as_positions(positions)
     n = len(pos)
-    i0, i1 = np.empty(n, np.int32), np.empty(n, np.int32)
-    j0, j1 = np.empty(n, np.int32), np.empty(n, np.int32)
-    zmin = np.empty(n)
-    _bounds(pos, radius, frame, width, height, i0, i1, j0, j1, zmin)
+    if box is None:
+        box = np.array(extent(pos)) if n else np.zeros((2, 3))
+    zlo, zhi = _depth_range(frame, box, radius)
+    zscale = (DEPTH_BUCKETS - 1) / (zhi - zlo) if zhi > zlo else 0.0
     n_workers = numba.get_num_threads()
     n_bands = min(height, BANDS_PER_WORKER * n_workers)
     band_rows = -(-height // n_bands)
     n_bands = -(-height // band_rows)
-    band_start, rec_id, rec_box, rec_z, rec_c = _bin(pos, i0, i1, j0, j1, zmin, band_rows,
-                                                      n_bands)
+    i0, i1 = np.empty(n, np.int32), np.empty(n, np.int32)
+    j0, j1 = np.empty(n, np.int32), np.empty(n, np.int32)
+    zmin = np.empty(n)
+    counts = np.zeros((CHUNKS_PER_WORKER * n_workers, n_bands * DEPTH_BUCKETS), np.int64)
+    _footprints(pos, radius, frame, width, height, zlo, zscale, band_rows, i0, i1, j0, j1, zmin,
+                counts)
+    totals = counts.sum(axis=0)
+    key_start = np.cumsum(totals) - totals
+    offsets = key_start[None, :] + np.cumsum(counts, axis=0) - counts
+    m = int(totals.sum())
+    band_start = np.append(key_start[::DEPTH_BUCKETS], m)
+    rec_id, rec_box = np.empty(m, np.int64), np.empty((m, 4), np.int32)
+    rec_z, rec_c = np.empty(m), np.empty((m, 3))
+    _bin_fill(pos, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, rec_id, rec_box,
+              rec_z, rec_c)
     hit_t = np.full(width * height, np.inf)
     hit_id = np.full(width * height, -1, np.int64)
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
                 rec_box, rec_z, rec_c, n_workers, hit_t, hit_id)
-    _to_metres(frame, width, height, hit_t)
+    if metres:
+        _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id
 
 

@@ -21,7 +21,7 @@ from PIL import Image
 from protocol.spec import View
 from render_server.accel import BrickGrids, build_grids
 from render_server.bricks import Bricks, as_positions, repartition
-from render_server.camera import basis, pixel_ray, primary_rays, ray_frame
+from render_server.camera import basis, pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
 from render_server.cast import cast
 from render_server.colormap import preset
 from render_server.trace import trace
@@ -72,9 +72,10 @@ def key_light(view: View) -> np.ndarray:
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _shade(f, width, height, hit_t, hit_id, positions, radius, field, lut, vmin, vmax,
+def _shade(f, width, height, hit_t, hit_id, metric, positions, radius, field, lut, vmin, vmax,
            nan_rgb, light, shadowed, background, out):
-    """Lambert + ambient shading of every pixel into out [h * w, 3] uint8."""
+    """Lambert + ambient shading of every pixel into out [h * w, 3] uint8; hit_t in m along
+    unit rays (metric) or in camera depth along `pixel_ray_unnormalized`."""
     scale = (lut.shape[0] - 1) / (vmax - vmin) if vmax > vmin else 0.0
     for j in prange(height):
         for i in range(width):
@@ -84,7 +85,10 @@ def _shade(f, width, height, hit_t, hit_id, positions, radius, field, lut, vmin,
                 for c in range(3):
                     out[q, c] = np.uint8(min(max(background[c], 0.0), 1.0) * 255.0 + 0.5)
                 continue
-            ox, oy, oz, dx, dy, dz = pixel_ray(f, i, j, width, height)
+            if metric:
+                ox, oy, oz, dx, dy, dz = pixel_ray(f, i, j, width, height)
+            else:
+                ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
             t = hit_t[q]
             nx = (ox + dx * t - positions[p, 0]) / radius
             ny = (oy + dy * t - positions[p, 1]) / radius
@@ -135,13 +139,15 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False) -
     or [n, k] vectors by magnitude, computed only for visible particles) with the
     view's colormap and range, Lambert + ambient shading, optional shadows."""
     frame = ray_frame(view.camera, view.width, view.height)
-    t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height)
+    box = np.array([scene.bricks.boxes[:, 0].min(axis=0), scene.bricks.boxes[:, 1].max(axis=0)])
+    t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height, box,
+                  metres=shadows)  # shadow rays start from metric hit points
     light = key_light(view)
     shadowed = (_shadow_mask(scene, view, t, ids, light) if shadows
                 else np.zeros(len(ids), np.bool_))
     cmap = preset(view.colormap)
     out = np.empty((len(ids), 3), np.uint8)
-    _shade(frame, view.width, view.height, t, ids, scene.positions, scene.radius,
+    _shade(frame, view.width, view.height, t, ids, shadows, scene.positions, scene.radius,
            field_columns(field), cmap.lut(), float(view.range[0]),
            float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
            np.asarray(view.background, np.float64), out)

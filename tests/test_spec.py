@@ -80,3 +80,13 @@ def test_schedule_and_fields():
     assert [v.name for v in spec.wants(21, 0.1)] == []
     assert [v.name for v in spec.wants(40, 0.2)] == ["top"]
     assert spec.fields == ("displacement", "velocity_magnitude")
+
+
+def test_shipped_example_spec_loads():
+    from pathlib import Path
+
+    spec = Spec.load(Path(__file__).parent.parent / "deploy" / "spec-column.json")
+    assert [v.name for v in spec.views] == ["side", "top", "aerial"]
+    assert spec.fields == ("displacement",)
+    assert [v.name for v in spec.wants(20, 0.01)] == ["side"]
+    assert [v.name for v in spec.wants(4000, 0.5)] == ["top", "aerial"]

@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench lint clean
+.PHONY: demo test test-slow bench lint clean clean-numba
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -31,5 +31,10 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-clean:
+# numba's on-disk cache tracks a kernel's own file only: clear it after editing a helper
+# that other kernels inline (e.g. sim/svd.py, render_server/camera.py)
+clean-numba:
+	find . -path ./$(VENV) -prune -o \( -name '*.nbi' -o -name '*.nbc' \) -print -delete
+
+clean: clean-numba
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -2,10 +2,12 @@
 timing published and logged; malformed and degenerate input counted, never fatal; a rank
 killed mid-step releases the step as incomplete. Waits are on message counts."""
 
+import threading
+
 import numpy as np
 import pytest
 from conftest import make_chunk
-from test_loopback import wait_until
+from test_loopback import TIMEOUT_S, wait_until
 
 from protocol import Frame, Spec, Timing, decode_as, keys
 from protocol.log import read_log
@@ -124,3 +126,32 @@ def test_minority_serve_runs_until_sigterm(endpoint, tmp_path):
     assert (tmp_path / "out" / RUN / "side" / "000020.png").exists()
     log = tmp_path / "out" / f"{RUN}.mcap"
     assert sum(1 for r in read_log(log) if r.topic.endswith("/frame/side")) == 1
+
+
+def test_newest_step_wins_when_rendering_falls_behind(server, client_factory, tmp_path):
+    every_step = Spec.from_dict({**spec().to_dict(),
+                                 "views": [{**spec().views[0].to_dict(), "every_steps": 1}]})
+    daemon = RenderServer(server, ServerOptions(every_step, tmp_path, None, timeout_s=30.0,
+                                                write_png=False))
+    gate = threading.Event()  # holds the render thread, as a slow render would
+    render_step = daemon.render_step
+
+    def slow_render(step):
+        gate.wait(TIMEOUT_S)
+        render_step(step)
+
+    daemon.render_step = slow_render
+    try:
+        sim = client_factory()
+        for step in range(1, 31):
+            send_step(sim, step, ranks=1, n=20)
+        assert wait_until(lambda: daemon.stats.chunks == 30)
+        gate.set()
+        assert wait_until(lambda: daemon.summary()["steps_rendered"]
+                          + daemon.summary()["steps_skipped"] == 30)
+        s = daemon.summary()
+        # the step the render thread held, then only the newest: 28 or 29 skipped
+        assert s["steps_rendered"] in (1, 2) and s["inbox_dropped"] == 0
+        assert daemon.stats.frames == s["steps_rendered"]
+    finally:
+        daemon.close()

@@ -1,4 +1,6 @@
-"""Ray casting of spheres through the bricks' uniform grids (numba, rays in parallel).
+"""Ray casting of spheres through the bricks' uniform grids (numba, rays in parallel): the
+shadow rays of the renderer (primary visibility is cast in object order, `cast`), and a
+brute-force reference for tests.
 
 A ray visits the bricks it crosses front to back (k-d bricks are disjoint, so the order of
 entry distances is a valid order) and, inside each, the cells it crosses (3D DDA,
@@ -69,7 +71,7 @@ def _dda_axis(o, d, t_enter, lo, h, n):
 
 @njit(cache=True, nogil=True)
 def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2, boxes,
-                 dims, cell_size, cell_offset, cell_start, ref_offset, items, skip):
+                 dims, cell_size, cell_offset, cell_start, ref_offset, items):
     """Closest hit inside brick b between t_enter and t_exit; returns (best_t, best_id)."""
     nx, ny, nz = dims[b, 0], dims[b, 1], dims[b, 2]
     base = cell_offset[b] + b
@@ -81,8 +83,6 @@ def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2
         c = base + (cx * ny + cy) * nz + cz
         for k in range(cell_start[c], cell_start[c + 1]):
             p = items[refs + k]
-            if p == skip:
-                continue
             t = _hit_sphere(o, d, positions[p, 0], positions[p, 1], positions[p, 2], r2, t_min)
             if t < best_t or (t == best_t and p < best_id):
                 best_t, best_id = t, p
@@ -107,8 +107,8 @@ def _trace_brick(o, d, b, t_enter, t_exit, t_min, best_t, best_id, positions, r2
 
 
 @njit(cache=True, nogil=True)
-def _closest(o, d, t_min, skip, positions, r2, boxes, dims, cell_size, cell_offset,
-             cell_start, ref_offset, items, t_in, t_out, order):
+def _closest(o, d, t_min, positions, r2, boxes, dims, cell_size, cell_offset, cell_start,
+             ref_offset, items, t_in, t_out, order):
     nb = boxes.shape[0]
     m = 0
     for b in range(nb):
@@ -127,7 +127,7 @@ def _closest(o, d, t_min, skip, positions, r2, boxes, dims, cell_size, cell_offs
         b = order[i]
         best_t, best_id = _trace_brick(o, d, b, t_in[b], t_out[b], t_min, best_t, best_id,
                                        positions, r2, boxes, dims, cell_size, cell_offset,
-                                       cell_start, ref_offset, items, skip)
+                                       cell_start, ref_offset, items)
         if best_t <= t_out[b]:
             break
     return best_t, best_id
@@ -143,9 +143,9 @@ def _trace_all(origins, dirs, positions, r2, boxes, dims, cell_size, cell_offset
         t_out = np.empty(MAX_BRICKS)
         order = np.empty(MAX_BRICKS, np.int64)
         for r in range(task * RAYS_PER_TASK, min(nrays, (task + 1) * RAYS_PER_TASK)):
-            hit_t[r], hit_id[r] = _closest(origins[r], dirs[r], 0.0, NO_HIT, positions, r2,
-                                           boxes, dims, cell_size, cell_offset, cell_start,
-                                           ref_offset, items, t_in, t_out, order)
+            hit_t[r], hit_id[r] = _closest(origins[r], dirs[r], 0.0, positions, r2, boxes, dims,
+                                           cell_size, cell_offset, cell_start, ref_offset,
+                                           items, t_in, t_out, order)
 
 
 def trace(origins: np.ndarray, dirs: np.ndarray, positions: np.ndarray, radius: float,

@@ -5,7 +5,9 @@
 Run as a module from the repository root (as the Makefile does). JIT compilation and the
 warm-up steps are excluded from the timing; the timed steps use the CFL time step of the
 collapsing column (Drucker-Prager sand) from rest. `phase_fraction` splits the timed wall
-time into binning, P2G, grid update and G2P (with the return mapping).
+time into binning (sort and the periodic permutation), P2G (scatter into per-block
+buffers), grid (buffer sum per node fused with the grid update) and G2P (with the return
+mapping).
 """
 
 from __future__ import annotations

@@ -1,9 +1,11 @@
 """The MPM driver: owns particle and grid state, the phase order and the timing.
 
-One step: bin particles by block (counting sort) -> zero grid -> P2G -> grid update
-(gravity, walls) -> G2P (advection, plasticity, stress). The time step follows the CFL
-condition dt = cfl * dx / (c_p + max |v|), recomputed every step; a fixed user dt is
-accepted only while it stays below that bound.
+One step: bin particles by block (parallel stable counting sort; every
+REORDER_INTERVAL_STEPS also permute the particle arrays into that order) -> P2G scatter into
+per-block buffers -> grid: sum the buffers per node and update (gravity, walls) -> G2P
+(advection, plasticity, stress). Phase times: bin, p2g (scatter), grid (gather + update),
+g2p. The time step follows the CFL condition dt = cfl * dx / (c_p + max |v|), recomputed
+every step; a fixed user dt is accepted only while it stays below that bound.
 """
 
 from __future__ import annotations
@@ -93,14 +95,19 @@ class Diagnostics:
 
 @dataclass
 class _Binning:
-    """Scratch arrays of the counting sort (reused every step)."""
+    """Scratch arrays of the counting sort and the per-block P2G buffers (reused every
+    step; `buf` grows when more blocks become non-empty)."""
 
-    nblocks3: np.ndarray
-    block_start: np.ndarray
-    order: np.ndarray
-    color_start: np.ndarray
-    color_blocks: np.ndarray
-    key: np.ndarray
+    nblocks3: np.ndarray  # [3] int64, blocks per axis
+    block_start: np.ndarray  # [nblocks + 1] int64
+    order: np.ndarray  # [n] int64, sorted slot -> particle slot
+    block_slot: np.ndarray  # [nblocks] int64, buffer slot of a non-empty block or -1
+    active_blocks: np.ndarray  # [nblocks] int64, non-empty blocks (first n_active)
+    key: np.ndarray  # [n] int64, block of each particle
+    counts: np.ndarray  # [BIN_CHUNKS, nblocks] int64, counting-sort scratch
+    first_bad: np.ndarray  # [BIN_CHUNKS] int64
+    buf: np.ndarray  # [slots, BUF_NODES, BUF_NODES, BUF_NODES, 4] float64, P2G buffers
+    n_active: int = 0
 
     @classmethod
     def allocate(cls, n: int, grid_shape) -> _Binning:
@@ -108,8 +115,17 @@ class _Binning:
                         for s in grid_shape], dtype=np.int64)
         nb = int(np.prod(nb3))
         return cls(nb3, np.zeros(nb + 1, np.int64), np.zeros(n, np.int64),
-                   np.zeros(kernels.N_COLORS + 1, np.int64), np.zeros(nb, np.int64),
-                   np.zeros(n, np.int64))
+                   np.full(nb, -1, np.int64), np.zeros(nb, np.int64), np.zeros(n, np.int64),
+                   np.zeros((kernels.BIN_CHUNKS, nb), np.int64),
+                   np.zeros(kernels.BIN_CHUNKS, np.int64), cls._buffers(0))
+
+    @staticmethod
+    def _buffers(slots: int) -> np.ndarray:
+        return np.empty((slots,) + (kernels.BUF_NODES,) * 3 + (4,))
+
+    def ensure_buffers(self) -> None:
+        if self.buf.shape[0] < self.n_active:
+            self.buf = self._buffers(self.n_active + self.n_active // 4 + 8)
 
 
 @dataclass
@@ -180,22 +196,22 @@ class Simulator:
         inv_dx = 1.0 / g.dx
         x0 = g.x0
         t0 = time.perf_counter()
-        bad = kernels.bin_particles(ps.x, x0, inv_dx, np.array(g.shape, np.int64), b.nblocks3,
-                                   b.block_start, b.order, b.color_start, b.color_blocks,
-                                   b.key)
+        bad, b.n_active = kernels.bin_particles(
+            ps.x, x0, inv_dx, np.array(g.shape, np.int64), b.nblocks3, b.block_start, b.order,
+            b.block_slot, b.active_blocks, b.key, b.counts, b.first_bad)
         if bad >= 0:
             self._raise_nonfinite_or_escape(bad)
         if self.step_count % REORDER_INTERVAL_STEPS == 0:
             ps.permute(b.order)
             b.order[:] = np.arange(ps.n)
+        b.ensure_buffers()
         t1 = time.perf_counter()
-        g.data.fill(0.0)
-        kernels.p2g(ps.x, ps.v, ps.C, ps.tau, ps.mass, ps.vol0, b.order, b.block_start,
-                    b.color_start, b.color_blocks, g.data, x0, inv_dx, dt)
+        kernels.p2g_scatter(ps.x, ps.v, ps.C, ps.tau, ps.mass, ps.vol0, b.order, b.block_start,
+                            b.active_blocks, b.n_active, b.nblocks3, b.buf, x0, inv_dx, dt)
         t2 = time.perf_counter()
         w = self.walls
-        kernels.grid_update(g.data, g.origin, g.dx, dt, self._gravity, w.axis, w.pos, w.side,
-                            w.mu, w.lo, w.hi)
+        kernels.grid_gather_update(b.buf, b.block_slot, b.nblocks3, g.data, g.origin, g.dx, dt,
+                                   self._gravity, w.axis, w.pos, w.side, w.mu, w.lo, w.hi)
         t3 = time.perf_counter()
         kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, inv_dx, dt, self._lo,
                     self._hi, self._lam, self._mu, self._alpha, self._stats)

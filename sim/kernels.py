@@ -1,19 +1,24 @@
 """MLS-MPM kernels (Hu et al. 2018) with APIC transfer and quadratic B-splines.
 
 Numba kernels on plain arrays and scalars; the driver (`sim.driver.Simulator`) owns the
-state and the phase order: bin -> P2G -> grid update -> G2P. Conventions:
+state and the phase order: bin -> P2G scatter -> grid gather + update -> G2P. Conventions:
 
-* grid: [nx, ny, nz, 4] float64; [..., :3] momentum (kg m/s) after P2G and velocity (m/s)
-  after the grid update, [..., 3] mass (kg). Local node (0, 0, 0) sits at x0 (m).
+* grid: [nx, ny, nz, 4] float64; [..., :3] momentum (kg m/s) after the P2G sum and
+  velocity (m/s) after the grid update, [..., 3] mass (kg). Local node (0, 0, 0) sits at
+  x0 (m).
 * a particle at local cell coordinate X = (x - x0) / dx has base node floor(X - 1/2) and
   touches the 3x3x3 nodes base + {0, 1, 2}.
 
-Race-free parallel P2G: particles are counting-sorted by block of BLOCK_CELLS^3 base cells;
-blocks are 8-colored by the parity of their block coordinates. A block writes nodes
-[b*B, b*B + B + 1] per axis, so two blocks of one color (at least B cells apart) never write
-the same node. Colors run one after another, blocks of a color in parallel, particles of a
-block in sorted order: the summation order per node, hence the result, does not depend on
-the thread count.
+Race-free, deterministic parallel P2G: particles are counting-sorted (stable, parallel over
+fixed chunks) by block of BLOCK_CELLS^3 base cells. Each non-empty block scatters its
+particles, in sorted order, into a private buffer of BUF_NODES^3 nodes ([b*B, b*B + B + 1]
+per axis); blocks run in parallel and share nothing. Then every grid node sums the (at
+most 8) buffers covering it in a fixed order, fused with the grid update. The summation
+order per node, hence the result, does not depend on the thread count; two parallel loops
+per step instead of one per color (fewer barriers, which matters on a shared machine).
+
+Per-particle work in P2G and G2P is on scalars (no scratch arrays): weights per axis,
+separable sums over the 3x3x3 stencil, the 3x3 eigen-solve in registers.
 """
 
 from __future__ import annotations
@@ -23,263 +28,380 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from sim.plasticity import elastoplastic_update
+from sim.plasticity import elastoplastic_update, elastoplastic_update_scalar
 
-BLOCK_CELLS = 4  # block edge in cells; >= 2 keeps same-colored blocks' stencils disjoint
-N_COLORS = 8
-G2P_CHUNK = 512  # particles per parallel work item in G2P (scratch allocated per chunk)
+BLOCK_CELLS = 4  # block edge in cells (>= 2: a node is covered by at most 2 blocks per axis)
+BIN_CHUNKS = 16  # chunks of the parallel counting sort (fixed: the sort is the serial one)
+BUF_NODES = BLOCK_CELLS + 2  # nodes per axis a block's particles reach: [b*B, b*B + B + 1]
+GATHER_GROUP = 8  # blocks per parallel work item of the grid gather + update
+G2P_CHUNK = 512  # particles per parallel work item in G2P
 APIC_D_INV = 4.0  # inverse of the quadratic B-spline inertia tensor D = dx^2 / 4 (per dx^2)
 WALL_TOL_CELLS = 1e-6  # a node this close (in cells) to a wall plane counts as on it
-# LLVM fast-math for P2G: contraction (FMA), reassociation, reciprocal and signed-zero
-# freedom. The generated code does not depend on the thread count, so results stay bitwise
-# independent of it. Not on G2P: there even these flags let LLVM fold away the
-# finiteness checks (the NaN guard test failed), so G2P stays IEEE-exact.
+# LLVM fast-math for the P2G scatter: contraction (FMA), reassociation, reciprocal and
+# signed-zero freedom. The generated code does not depend on the thread count, so results
+# stay bitwise independent of it. G2P gets contraction (FMA) only: with more flags LLVM
+# folded away its finiteness checks once (the NaN guard test failed); "contract" cannot.
 FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
+G2P_FASTMATH = {"contract"}
 
 FIELD_POSITION, FIELD_VELOCITY, FIELD_AFFINE, FIELD_DEFORMATION, FIELD_STRESS = range(5)
 FIELD_NAMES = ("position", "velocity", "affine_velocity", "deformation_gradient", "stress")
 
 
+@njit(cache=True, inline="always")
+def _block_key(x, p, x0, inv_dx, grid_shape, nby, nbz):
+    """Linear block index of particle p's base cell, or -1 if its stencil would leave the
+    grid (or its position is not finite)."""
+    k = 0
+    for a in range(3):
+        X = (x[p, a] - x0[a]) * inv_dx
+        if not (X >= 0.5 and X < grid_shape[a] - 1.5):
+            return -1
+        b = int(X - 0.5) // BLOCK_CELLS  # X - 0.5 >= 0: truncation is floor
+        k = b if a == 0 else (k * (nby if a == 1 else nbz) + b)
+    return k
+
+
 @njit(parallel=True, cache=True)
-def _block_keys(x, x0, inv_dx, grid_shape, nblocks3, key):
-    """key[p] = linear block index of particle p's base cell, or -1 if its stencil would
-    leave the grid (or its position is not finite)."""
+def _count_keys(x, x0, inv_dx, grid_shape, nblocks3, key, counts, first_bad):
+    """Per chunk c of the particles (counts.shape[0] equal chunks): key[p] (block of particle
+    p, or -1), counts[c, k] (particles of chunk c in block k), first_bad[c] (first p with
+    key -1, or n)."""
+    n = x.shape[0]
     nby, nbz = nblocks3[1], nblocks3[2]
-    for p in prange(x.shape[0]):
-        k = 0
-        for a in range(3):
-            X = (x[p, a] - x0[a]) * inv_dx
-            if not (X >= 0.5 and X < grid_shape[a] - 1.5):
-                k = -1
-                break
-            b = int(X - 0.5) // BLOCK_CELLS  # X - 0.5 >= 0: truncation is floor
-            k = b if a == 0 else (k * (nby if a == 1 else nbz) + b)
-        key[p] = k
+    nch = counts.shape[0]
+    size = (n + nch - 1) // nch
+    for c in prange(nch):
+        counts[c, :] = 0
+        first_bad[c] = n
+        for p in range(c * size, min(n, (c + 1) * size)):
+            k = _block_key(x, p, x0, inv_dx, grid_shape, nby, nbz)
+            key[p] = k
+            if k < 0:
+                if first_bad[c] == n:
+                    first_bad[c] = p
+            else:
+                counts[c, k] += 1
+
+
+@njit(parallel=True, cache=True)
+def _place_keys(key, offsets, order):
+    """order[offsets[c, k]++] = p over the particles p of chunk c, in increasing p."""
+    n = key.shape[0]
+    nch = offsets.shape[0]
+    size = (n + nch - 1) // nch
+    for c in prange(nch):
+        for p in range(c * size, min(n, (c + 1) * size)):
+            k = key[p]
+            order[offsets[c, k]] = p
+            offsets[c, k] += 1
 
 
 @njit(cache=True)
-def bin_particles(x, x0, inv_dx, grid_shape, nblocks3, block_start, order, color_start,
-                  color_blocks, key):
-    """Counting sort of particles by block. Writes order [n] (sorted slot -> particle slot),
-    block_start [nblocks + 1], color_start [9] and color_blocks [nblocks] (non-empty blocks
-    grouped by color). Returns -1, or the first particle whose stencil leaves the grid."""
+def bin_particles(x, x0, inv_dx, grid_shape, nblocks3, block_start, order, block_slot,
+                  active_blocks, key, counts, first_bad):
+    """Stable counting sort of particles by block, in parallel over counts.shape[0] equal
+    chunks of particles (the result is the serial stable sort, whatever the thread count).
+    Writes order [n] (sorted slot -> particle slot), block_start [nblocks + 1], block_slot
+    [nblocks] (index of a non-empty block among the active ones, -1 for an empty block)
+    and active_blocks [nblocks] (the non-empty blocks in block order, first n_active
+    entries). counts [nchunks, nblocks] and first_bad [nchunks] are scratch. Returns
+    (bad, n_active): bad is -1, or the first particle whose stencil leaves the grid."""
     n = x.shape[0]
-    nby, nbz = nblocks3[1], nblocks3[2]
-    nb = nblocks3[0] * nby * nbz
-    _block_keys(x, x0, inv_dx, grid_shape, nblocks3, key)
-    block_start[:] = 0
-    for p in range(n):
-        k = key[p]
-        if k < 0:
-            return p
-        block_start[k + 1] += 1
+    nb = nblocks3[0] * nblocks3[1] * nblocks3[2]
+    nch = counts.shape[0]
+    _count_keys(x, x0, inv_dx, grid_shape, nblocks3, key, counts, first_bad)
+    bad = n
+    for c in range(nch):
+        bad = min(bad, first_bad[c])
+    if bad < n:
+        return bad, 0
+    # counts -> start offset of each (chunk, block), block by block, chunks in order
+    run = 0
+    n_active = 0
     for k in range(nb):
-        block_start[k + 1] += block_start[k]
-    fill = block_start[:nb].copy()
-    for p in range(n):
-        k = key[p]
-        order[fill[k]] = p
-        fill[k] += 1
-    color_start[:] = 0
-    for k in range(nb):
-        if block_start[k + 1] > block_start[k]:
-            bz = k % nbz
-            by = (k // nbz) % nby
-            bx = k // (nbz * nby)
-            c = (bx & 1) * 4 + (by & 1) * 2 + (bz & 1)
-            color_start[c + 1] += 1
-    for c in range(N_COLORS):
-        color_start[c + 1] += color_start[c]
-    cfill = color_start[:N_COLORS].copy()
-    for k in range(nb):
-        if block_start[k + 1] > block_start[k]:
-            bz = k % nbz
-            by = (k // nbz) % nby
-            bx = k // (nbz * nby)
-            c = (bx & 1) * 4 + (by & 1) * 2 + (bz & 1)
-            color_blocks[cfill[c]] = k
-            cfill[c] += 1
-    return -1
+        block_start[k] = run
+        for c in range(nch):
+            m = counts[c, k]
+            counts[c, k] = run
+            run += m
+        if run > block_start[k]:
+            block_slot[k] = n_active
+            active_blocks[n_active] = k
+            n_active += 1
+        else:
+            block_slot[k] = -1
+    block_start[nb] = run
+    _place_keys(key, counts, order)
+    return -1, n_active
 
 
 @njit(cache=True, inline="always")
-def _weights(X, w):
-    """Quadratic B-spline weights w [3, 3] for local cell coords X [3]; returns nothing,
-    fx = X - base is recomputed by the caller."""
-    for a in range(3):
-        fx = X[a] - math.floor(X[a] - 0.5)
-        w[a, 0] = 0.5 * (1.5 - fx) ** 2
-        w[a, 1] = 0.75 - (fx - 1.0) ** 2
-        w[a, 2] = 0.5 * (fx - 0.5) ** 2
+def _weights3(X):
+    """Quadratic B-spline along one axis: local cell coordinate X -> (base node, fx =
+    X - base, weights of nodes base + 0, 1, 2)."""
+    fb = math.floor(X - 0.5)
+    fx = X - fb
+    return (int(fb), fx, 0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2,
+            0.5 * (fx - 0.5) ** 2)
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def p2g(x, v, C, tau, mass, vol0, order, block_start, color_start, color_blocks, grid, x0,
-        inv_dx, dt):
-    """Particle to grid: scatter mass and APIC momentum plus the MLS stress impulse
-    -dt vol0 (4 / dx^2) tau (x_i - x_p). grid must be zeroed by the caller."""
+def p2g_scatter(x, v, C, tau, mass, vol0, order, block_start, active_blocks, n_active,
+                nblocks3, buf, x0, inv_dx, dt):
+    """Particle to grid, part 1: each non-empty block scatters mass and APIC momentum plus
+    the MLS stress impulse -dt vol0 (4 / dx^2) tau (x_i - x_p) of its particles (in sorted
+    order) into its own buffer buf[slot] [BUF_NODES^3, 4] covering nodes
+    [b*B, b*B + B + 1] per axis. Blocks run in parallel and share nothing. Per particle on
+    scalars: the affine part A (x_i - x_p) is built up per (i, j) row, then per node."""
     dx = 1.0 / inv_dx
     stress_scale = -dt * APIC_D_INV * inv_dx * inv_dx
-    for c in range(N_COLORS):
-        for kb in prange(color_start[c], color_start[c + 1]):
-            b = color_blocks[kb]
-            X = np.empty(3)
-            w = np.empty((3, 3))
-            A = np.empty((3, 3))
-            base = np.empty(3, np.int64)
-            for s in range(block_start[b], block_start[b + 1]):
-                p = order[s]
-                m = mass[p]
-                sv = stress_scale * vol0[p]
-                for a in range(3):
-                    X[a] = (x[p, a] - x0[a]) * inv_dx
-                    base[a] = int(math.floor(X[a] - 0.5))
-                _weights(X, w)
-                for r in range(3):
-                    for q in range(3):
-                        A[r, q] = sv * tau[p, r, q] + m * C[p, r, q]
-                mvx, mvy, mvz = m * v[p, 0], m * v[p, 1], m * v[p, 2]
-                for i in range(3):
-                    dxp = (i - (X[0] - base[0])) * dx
-                    for j in range(3):
-                        dyp = (j - (X[1] - base[1])) * dx
-                        wij = w[0, i] * w[1, j]
-                        for k in range(3):
-                            dzp = (k - (X[2] - base[2])) * dx
-                            wt = wij * w[2, k]
-                            gi, gj, gk = base[0] + i, base[1] + j, base[2] + k
-                            grid[gi, gj, gk, 0] += wt * (
-                                mvx + A[0, 0] * dxp + A[0, 1] * dyp + A[0, 2] * dzp)
-                            grid[gi, gj, gk, 1] += wt * (
-                                mvy + A[1, 0] * dxp + A[1, 1] * dyp + A[1, 2] * dzp)
-                            grid[gi, gj, gk, 2] += wt * (
-                                mvz + A[2, 0] * dxp + A[2, 1] * dyp + A[2, 2] * dzp)
-                            grid[gi, gj, gk, 3] += wt * m
+    nby, nbz = nblocks3[1], nblocks3[2]
+    for sl in prange(n_active):
+        b = active_blocks[sl]
+        ox = (b // (nby * nbz)) * BLOCK_CELLS
+        oy = ((b // nbz) % nby) * BLOCK_CELLS
+        oz = (b % nbz) * BLOCK_CELLS
+        bb = buf[sl].reshape(-1)  # flat [BUF_NODES^3 * 4]: contiguous node fields
+        for e in range(bb.shape[0]):
+            bb[e] = 0.0
+        for s in range(block_start[b], block_start[b + 1]):
+            p = order[s]
+            m = mass[p]
+            sv = stress_scale * vol0[p]
+            bx, fx, wx0, wx1, wx2 = _weights3((x[p, 0] - x0[0]) * inv_dx)
+            by, fy, wy0, wy1, wy2 = _weights3((x[p, 1] - x0[1]) * inv_dx)
+            bz, fz, wz0, wz1, wz2 = _weights3((x[p, 2] - x0[2]) * inv_dx)
+            bx -= ox
+            by -= oy
+            bz -= oz
+            a00 = sv * tau[p, 0, 0] + m * C[p, 0, 0]
+            a01 = sv * tau[p, 0, 1] + m * C[p, 0, 1]
+            a02 = sv * tau[p, 0, 2] + m * C[p, 0, 2]
+            a10 = sv * tau[p, 1, 0] + m * C[p, 1, 0]
+            a11 = sv * tau[p, 1, 1] + m * C[p, 1, 1]
+            a12 = sv * tau[p, 1, 2] + m * C[p, 1, 2]
+            a20 = sv * tau[p, 2, 0] + m * C[p, 2, 0]
+            a21 = sv * tau[p, 2, 1] + m * C[p, 2, 1]
+            a22 = sv * tau[p, 2, 2] + m * C[p, 2, 2]
+            mvx, mvy, mvz = m * v[p, 0], m * v[p, 1], m * v[p, 2]
+            dz0, dz1, dz2 = -fz * dx, (1.0 - fz) * dx, (2.0 - fz) * dx
+            for i in range(3):
+                dxp = (i - fx) * dx
+                wx = wx0 if i == 0 else (wx1 if i == 1 else wx2)
+                for j in range(3):
+                    dyp = (j - fy) * dx
+                    wy = wy0 if j == 0 else (wy1 if j == 1 else wy2)
+                    wij = wx * wy
+                    hx = mvx + a00 * dxp + a01 * dyp
+                    hy = mvy + a10 * dxp + a11 * dyp
+                    hz = mvz + a20 * dxp + a21 * dyp
+                    o = (((bx + i) * BUF_NODES + by + j) * BUF_NODES + bz) * 4
+                    for k in range(3):
+                        wz = wz0 if k == 0 else (wz1 if k == 1 else wz2)
+                        dzp = dz0 if k == 0 else (dz1 if k == 1 else dz2)
+                        wt = wij * wz
+                        ok = o + 4 * k
+                        bb[ok] += wt * (hx + a02 * dzp)
+                        bb[ok + 1] += wt * (hy + a12 * dzp)
+                        bb[ok + 2] += wt * (hz + a22 * dzp)
+                        bb[ok + 3] += wt * m
+
+
+@njit(cache=True, inline="always")
+def _node_update(grid, i, j, k, origin, dx, dt, gravity, wall_axis, wall_pos, wall_side,
+                 wall_mu, wall_lo, wall_hi, tol, vel, pos):
+    """Grid update of node (i, j, k): momentum -> velocity, add gravity dt, then
+    Coulomb-friction walls: at a node inside wall w's solid half-space
+    (side * (x[axis] - pos) <= 0, within lo..hi) an approaching normal velocity vn < 0 is
+    removed and the tangential speed reduced by mu |vn| (stopped if smaller); separating
+    velocities are kept. vel, pos [3] are scratch."""
+    m = grid[i, j, k, 3]
+    if m <= 0.0:
+        grid[i, j, k, 0] = 0.0
+        grid[i, j, k, 1] = 0.0
+        grid[i, j, k, 2] = 0.0
+        return
+    pos[0] = (origin[0] + i) * dx
+    pos[1] = (origin[1] + j) * dx
+    pos[2] = (origin[2] + k) * dx
+    for a in range(3):
+        vel[a] = grid[i, j, k, a] / m + dt * gravity[a]
+    for w in range(wall_axis.shape[0]):
+        a = wall_axis[w]
+        sd = wall_side[w]
+        if sd * (pos[a] - wall_pos[w]) > tol:
+            continue
+        inside = True
+        for b in range(3):
+            if b != a and (pos[b] < wall_lo[w, b] - tol or pos[b] > wall_hi[w, b] + tol):
+                inside = False
+        if not inside:
+            continue
+        vn = sd * vel[a]
+        if vn >= 0.0:
+            continue
+        vel[a] = 0.0
+        vt = math.sqrt(vel[0] ** 2 + vel[1] ** 2 + vel[2] ** 2)
+        mu = wall_mu[w]
+        if vt <= -mu * vn:
+            vel[0] = 0.0
+            vel[1] = 0.0
+            vel[2] = 0.0
+        else:
+            f = 1.0 + mu * vn / vt
+            for b in range(3):
+                vel[b] *= f
+    grid[i, j, k, 0] = vel[0]
+    grid[i, j, k, 1] = vel[1]
+    grid[i, j, k, 2] = vel[2]
 
 
 @njit(parallel=True, cache=True)
-def grid_update(grid, origin, dx, dt, gravity, wall_axis, wall_pos, wall_side, wall_mu,
-                wall_lo, wall_hi):
-    """Momentum -> velocity, add gravity dt, then Coulomb-friction walls: at a node inside
-    wall w's solid half-space (side * (x[axis] - pos) <= 0, within lo..hi) an approaching
-    normal velocity vn < 0 is removed and the tangential speed reduced by mu |vn| (stopped
-    if smaller); separating velocities are kept."""
+def grid_gather_update(buf, block_slot, nblocks3, grid, origin, dx, dt, gravity, wall_axis,
+                       wall_pos, wall_side, wall_mu, wall_lo, wall_hi):
+    """Particle to grid, part 2, fused with the grid update. Every node of the grid (all
+    of it is written, no zeroing needed) sums the buffers of the blocks whose stencil range
+    covers it: the node's own block b and, for its first two nodes per axis, block b - 1 —
+    up to 8 buffers, always in the same order (b - 1 before b per axis, x then y then z).
+    The summed node (momentum, kg m/s; mass, kg) then gets `_node_update` (velocity, m/s).
+    Parallel over groups of GATHER_GROUP blocks; the sum per node, hence the grid, does not
+    depend on the thread count."""
+    nbx, nby, nbz = nblocks3[0], nblocks3[1], nblocks3[2]
     nx, ny, nz = grid.shape[0], grid.shape[1], grid.shape[2]
-    nw = wall_axis.shape[0]
+    nb = nbx * nby * nbz
     tol = WALL_TOL_CELLS * dx
-    for i in prange(nx):
+    for grp in prange((nb + GATHER_GROUP - 1) // GATHER_GROUP):
         vel = np.empty(3)
         pos = np.empty(3)
-        for j in range(ny):
-            for k in range(nz):
-                m = grid[i, j, k, 3]
-                if m <= 0.0:
-                    grid[i, j, k, 0] = 0.0
-                    grid[i, j, k, 1] = 0.0
-                    grid[i, j, k, 2] = 0.0
-                    continue
-                pos[0] = (origin[0] + i) * dx
-                pos[1] = (origin[1] + j) * dx
-                pos[2] = (origin[2] + k) * dx
-                for a in range(3):
-                    vel[a] = grid[i, j, k, a] / m + dt * gravity[a]
-                for w in range(nw):
-                    a = wall_axis[w]
-                    sd = wall_side[w]
-                    if sd * (pos[a] - wall_pos[w]) > tol:
-                        continue
-                    inside = True
-                    for b in range(3):
-                        if b != a and (pos[b] < wall_lo[w, b] - tol or pos[b] > wall_hi[w, b] + tol):
-                            inside = False
-                    if not inside:
-                        continue
-                    vn = sd * vel[a]
-                    if vn >= 0.0:
-                        continue
-                    vel[a] = 0.0
-                    vt = math.sqrt(vel[0] ** 2 + vel[1] ** 2 + vel[2] ** 2)
-                    mu = wall_mu[w]
-                    if vt <= -mu * vn:
-                        vel[0] = 0.0
-                        vel[1] = 0.0
-                        vel[2] = 0.0
-                    else:
-                        f = 1.0 + mu * vn / vt
-                        for b in range(3):
-                            vel[b] *= f
-                grid[i, j, k, 0] = vel[0]
-                grid[i, j, k, 1] = vel[1]
-                grid[i, j, k, 2] = vel[2]
+        for b in range(grp * GATHER_GROUP, min(nb, (grp + 1) * GATHER_GROUP)):
+            cx = b // (nby * nbz)
+            cy = (b // nbz) % nby
+            cz = b % nbz
+            x_lo, y_lo, z_lo = cx * BLOCK_CELLS, cy * BLOCK_CELLS, cz * BLOCK_CELLS
+            x_hi = min(x_lo + BLOCK_CELLS, nx)
+            y_hi = min(y_lo + BLOCK_CELLS, ny)
+            z_hi = min(z_lo + BLOCK_CELLS, nz)
+            for gi in range(x_lo, x_hi):
+                for gj in range(y_lo, y_hi):
+                    for gk in range(z_lo, z_hi):
+                        for f in range(4):
+                            grid[gi, gj, gk, f] = 0.0
+            touched = False
+            for sx in range(max(cx - 1, 0), cx + 1):
+                for sy in range(max(cy - 1, 0), cy + 1):
+                    for sz in range(max(cz - 1, 0), cz + 1):
+                        if block_slot[(sx * nby + sy) * nbz + sz] >= 0:
+                            touched = True
+            if not touched:
+                continue  # no particle reaches this block: zero momentum, mass, velocity
+            for sx in range(max(cx - 1, 0), cx + 1):
+                for sy in range(max(cy - 1, 0), cy + 1):
+                    for sz in range(max(cz - 1, 0), cz + 1):
+                        sl = block_slot[(sx * nby + sy) * nbz + sz]
+                        if sl < 0:
+                            continue
+                        bb = buf[sl]
+                        for gi in range(x_lo, min(x_hi, sx * BLOCK_CELLS + BUF_NODES)):
+                            li = gi - sx * BLOCK_CELLS
+                            for gj in range(y_lo, min(y_hi, sy * BLOCK_CELLS + BUF_NODES)):
+                                lj = gj - sy * BLOCK_CELLS
+                                for gk in range(z_lo, min(z_hi, sz * BLOCK_CELLS + BUF_NODES)):
+                                    lk = gk - sz * BLOCK_CELLS
+                                    for f in range(4):
+                                        grid[gi, gj, gk, f] += bb[li, lj, lk, f]
+            for gi in range(x_lo, x_hi):
+                for gj in range(y_lo, y_hi):
+                    for gk in range(z_lo, z_hi):
+                        _node_update(grid, gi, gj, gk, origin, dx, dt, gravity, wall_axis,
+                                     wall_pos, wall_side, wall_mu, wall_lo, wall_hi, tol, vel,
+                                     pos)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=G2P_FASTMATH)
 def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats):
     """Grid to particle: APIC velocity and affine field, advection (clamped to the domain
     lo..hi, m), F^E <- (I + dt C) F^E, Drucker-Prager return mapping, Kirchhoff stress.
 
     out_stats [3] float64 receives: max |v|^2 (m^2/s^2), non-finite particle count, clamped
-    particle count. A particle with a non-finite velocity is left where it was."""
+    particle count. A particle with a non-finite velocity is left where it was.
+    Per-particle work is on scalars (no scratch arrays) except the rare full-SVD fallback
+    of an inverted or collapsed F^E."""
     n = x.shape[0]
     nchunks = (n + G2P_CHUNK - 1) // G2P_CHUNK
     chunk_stats = np.zeros((nchunks, 3))  # per chunk: max |v|^2, non-finite, clamped
+    cs = APIC_D_INV * inv_dx  # C = (4 / dx^2) sum w v (x_i - x_p) = (4 / dx) sum w v d
     for ch in prange(nchunks):
-        X = np.empty(3)
-        w = np.empty((3, 3))
-        base = np.empty(3, np.int64)
-        Fn = np.empty((3, 3))
-        U = np.empty((3, 3))
-        V = np.empty((3, 3))
-        sig = np.empty(3)
-        eps = np.empty(3)
-        S = np.empty((3, 3))
-        Q = np.empty((3, 3))
         cvmax2 = 0.0
         cbad = 0
         cclamp = 0
         for p in range(ch * G2P_CHUNK, min(n, (ch + 1) * G2P_CHUNK)):
-            for a in range(3):
-                X[a] = (x[p, a] - x0[a]) * inv_dx
-                base[a] = int(math.floor(X[a] - 0.5))
-            _weights(X, w)
-            vx = 0.0
-            vy = 0.0
-            vz = 0.0
-            c00 = c01 = c02 = c10 = c11 = c12 = c20 = c21 = c22 = 0.0
+            bx, fx, wx0, wx1, wx2 = _weights3((x[p, 0] - x0[0]) * inv_dx)
+            by, fy, wy0, wy1, wy2 = _weights3((x[p, 1] - x0[1]) * inv_dx)
+            bz, fz, wz0, wz1, wz2 = _weights3((x[p, 2] - x0[2]) * inv_dx)
+            # Separable gather: v = sum w g and sum w g d_b = sum w g n_b - f_b v, with the
+            # node offset n in {0, 1, 2} per axis; sums over z, then y, then x.
+            wz1b, wz2b = wz1, 2.0 * wz2  # weight * n along z
+            vx = vy = vz = 0.0
+            xx = xy = xz = 0.0  # sum w g n_x, components x, y, z
+            yx = yy = yz = 0.0  # sum w g n_y
+            zx = zy = zz = 0.0  # sum w g n_z
             for i in range(3):
-                dxp = i - (X[0] - base[0])
+                tx = ty = tz = 0.0  # sum over j, k of wy wz g
+                ux = uy = uz = 0.0  # sum of wy n_y wz g
+                sx = sy = sz = 0.0  # sum of wy wz n_z g
                 for j in range(3):
-                    dyp = j - (X[1] - base[1])
-                    wij = w[0, i] * w[1, j]
-                    for k in range(3):
-                        dzp = k - (X[2] - base[2])
-                        wt = wij * w[2, k]
-                        gi, gj, gk = base[0] + i, base[1] + j, base[2] + k
-                        gx = wt * grid[gi, gj, gk, 0]
-                        gy = wt * grid[gi, gj, gk, 1]
-                        gz = wt * grid[gi, gj, gk, 2]
-                        vx += gx
-                        vy += gy
-                        vz += gz
-                        c00 += gx * dxp
-                        c01 += gx * dyp
-                        c02 += gx * dzp
-                        c10 += gy * dxp
-                        c11 += gy * dyp
-                        c12 += gy * dzp
-                        c20 += gz * dxp
-                        c21 += gz * dyp
-                        c22 += gz * dzp
-            # (x_i - x_p) = d * dx, so C = (4 / dx^2) sum w v d dx = (4 / dx) sum w v d
-            cs = APIC_D_INV * inv_dx
+                    gi, gj = bx + i, by + j
+                    g0x, g0y, g0z = grid[gi, gj, bz, 0], grid[gi, gj, bz, 1], grid[gi, gj, bz, 2]
+                    g1x, g1y, g1z = (grid[gi, gj, bz + 1, 0], grid[gi, gj, bz + 1, 1],
+                                     grid[gi, gj, bz + 1, 2])
+                    g2x, g2y, g2z = (grid[gi, gj, bz + 2, 0], grid[gi, gj, bz + 2, 1],
+                                     grid[gi, gj, bz + 2, 2])
+                    kx = wz0 * g0x + wz1 * g1x + wz2 * g2x
+                    ky = wz0 * g0y + wz1 * g1y + wz2 * g2y
+                    kz = wz0 * g0z + wz1 * g1z + wz2 * g2z
+                    nx_ = wz1b * g1x + wz2b * g2x
+                    ny_ = wz1b * g1y + wz2b * g2y
+                    nz_ = wz1b * g1z + wz2b * g2z
+                    wy = wy0 if j == 0 else (wy1 if j == 1 else wy2)
+                    wyn = wy * j
+                    tx += wy * kx
+                    ty += wy * ky
+                    tz += wy * kz
+                    ux += wyn * kx
+                    uy += wyn * ky
+                    uz += wyn * kz
+                    sx += wy * nx_
+                    sy += wy * ny_
+                    sz += wy * nz_
+                wx = wx0 if i == 0 else (wx1 if i == 1 else wx2)
+                wxn = wx * i
+                vx += wx * tx
+                vy += wx * ty
+                vz += wx * tz
+                xx += wxn * tx
+                xy += wxn * ty
+                xz += wxn * tz
+                yx += wx * ux
+                yy += wx * uy
+                yz += wx * uz
+                zx += wx * sx
+                zy += wx * sy
+                zz += wx * sz
+            c00, c01, c02 = xx - fx * vx, yx - fy * vx, zx - fz * vx
+            c10, c11, c12 = xy - fx * vy, yy - fy * vy, zy - fz * vy
+            c20, c21, c22 = xz - fx * vz, yz - fy * vz, zz - fz * vz
             csum = c00 + c01 + c02 + c10 + c11 + c12 + c20 + c21 + c22
             if not (math.isfinite(vx + vy + vz) and math.isfinite(csum)):
                 cbad += 1
                 continue
+            c00, c01, c02 = cs * c00, cs * c01, cs * c02
+            c10, c11, c12 = cs * c10, cs * c11, cs * c12
+            c20, c21, c22 = cs * c20, cs * c21, cs * c22
             v[p, 0], v[p, 1], v[p, 2] = vx, vy, vz
-            C[p, 0, 0], C[p, 0, 1], C[p, 0, 2] = cs * c00, cs * c01, cs * c02
-            C[p, 1, 0], C[p, 1, 1], C[p, 1, 2] = cs * c10, cs * c11, cs * c12
-            C[p, 2, 0], C[p, 2, 1], C[p, 2, 2] = cs * c20, cs * c21, cs * c22
+            C[p, 0, 0], C[p, 0, 1], C[p, 0, 2] = c00, c01, c02
+            C[p, 1, 0], C[p, 1, 1], C[p, 1, 2] = c10, c11, c12
+            C[p, 2, 0], C[p, 2, 1], C[p, 2, 2] = c20, c21, c22
             cvmax2 = max(cvmax2, vx * vx + vy * vy + vz * vz)
             vel = (vx, vy, vz)
             clamped = False
@@ -294,14 +416,23 @@ def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats
                 x[p, a] = xa
             if clamped:
                 cclamp += 1
-            # F^E <- (I + dt C) F^E
-            for r in range(3):
-                for q in range(3):
-                    acc = F[p, r, q]
-                    for s in range(3):
-                        acc += dt * C[p, r, s] * F[p, s, q]
-                    Fn[r, q] = acc
-            elastoplastic_update(Fn, F[p], tau[p], lam, mu, alpha, S, Q, U, V, sig, eps)
+            # F^E <- (I + dt C) F^E, as F + dt (C F) row by row
+            e00, e01, e02 = F[p, 0, 0], F[p, 0, 1], F[p, 0, 2]
+            e10, e11, e12 = F[p, 1, 0], F[p, 1, 1], F[p, 1, 2]
+            e20, e21, e22 = F[p, 2, 0], F[p, 2, 1], F[p, 2, 2]
+            f00 = e00 + dt * c00 * e00 + dt * c01 * e10 + dt * c02 * e20
+            f01 = e01 + dt * c00 * e01 + dt * c01 * e11 + dt * c02 * e21
+            f02 = e02 + dt * c00 * e02 + dt * c01 * e12 + dt * c02 * e22
+            f10 = e10 + dt * c10 * e00 + dt * c11 * e10 + dt * c12 * e20
+            f11 = e11 + dt * c10 * e01 + dt * c11 * e11 + dt * c12 * e21
+            f12 = e12 + dt * c10 * e02 + dt * c11 * e12 + dt * c12 * e22
+            f20 = e20 + dt * c20 * e00 + dt * c21 * e10 + dt * c22 * e20
+            f21 = e21 + dt * c20 * e01 + dt * c21 * e11 + dt * c22 * e21
+            f22 = e22 + dt * c20 * e02 + dt * c21 * e12 + dt * c22 * e22
+            if not elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22,
+                                               F, tau, p, lam, mu, alpha):
+                _collapsed_update(f00, f01, f02, f10, f11, f12, f20, f21, f22, F[p],
+                                  tau[p], lam, mu, alpha)
             fsum = 0.0
             for r in range(3):
                 for q in range(3):
@@ -318,6 +449,43 @@ def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats
         out_stats[0] = max(out_stats[0], chunk_stats[ch, 0])
         out_stats[1] += chunk_stats[ch, 1]
         out_stats[2] += chunk_stats[ch, 2]
+
+
+@njit(cache=True)
+def _collapsed_update(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_out, tau_out, lam, mu,
+                      alpha):
+    """Rare path (inverted or collapsed trial F^E): the array-based full-SVD update."""
+    Fn = np.empty((3, 3))
+    Fn[0, 0], Fn[0, 1], Fn[0, 2] = f00, f01, f02
+    Fn[1, 0], Fn[1, 1], Fn[1, 2] = f10, f11, f12
+    Fn[2, 0], Fn[2, 1], Fn[2, 2] = f20, f21, f22
+    scratch = np.empty((4, 3, 3))
+    vec = np.empty((2, 3))
+    elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, scratch[0], scratch[1],
+                         scratch[2], scratch[3], vec[0], vec[1])
+
+
+@njit(cache=True, inline="always")
+def _take_row(src, p, dst, k):
+    for f in range(src.shape[1]):
+        dst[k, f] = src[p, f]
+
+
+@njit(parallel=True, cache=True)
+def permute_particles(order, src, dst):
+    """dst[i][k] = src[i][order[k]] for the nine particle arrays (x, v, C, F, tau, mass,
+    vol0, x0, pid), each viewed as [n, m]; src and dst are tuples. One parallel loop."""
+    for k in prange(order.shape[0]):
+        p = order[k]
+        _take_row(src[0], p, dst[0], k)
+        _take_row(src[1], p, dst[1], k)
+        _take_row(src[2], p, dst[2], k)
+        _take_row(src[3], p, dst[3], k)
+        _take_row(src[4], p, dst[4], k)
+        _take_row(src[5], p, dst[5], k)
+        _take_row(src[6], p, dst[6], k)
+        _take_row(src[7], p, dst[7], k)
+        _take_row(src[8], p, dst[8], k)
 
 
 @njit(cache=True)

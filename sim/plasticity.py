@@ -21,7 +21,7 @@ import math
 import numpy as np
 from numba import njit
 
-from sim.svd import svd3, sym_eig3
+from sim.svd import svd3, sym_eig3, sym_eig3_scalar
 
 DIM = 3
 SIGMA_MIN = 1e-4  # clamp for singular values before log (an inverted/collapsed F^E)
@@ -40,26 +40,27 @@ def dp_yield(e0, e1, e2, lam, mu, alpha):
 
 
 @njit(cache=True, inline="always")
-def dp_return(e0, e1, e2, eps, lam, mu, alpha):
-    """Principal Hencky strains (e0, e1, e2) -> projected strains eps [3]; returns dgamma
-    >= 0 (plastic strain increment, 0 for an elastic state)."""
+def dp_return_scalar(e0, e1, e2, lam, mu, alpha):
+    """Principal Hencky strains (e0, e1, e2) -> (eps0, eps1, eps2, dgamma): projected
+    strains and dgamma >= 0 (plastic strain increment, 0 for an elastic state)."""
     tr = e0 + e1 + e2
     m = tr / DIM
     d0, d1, d2 = e0 - m, e1 - m, e2 - m
     dev = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     if tr > 0.0:
-        eps[0] = 0.0
-        eps[1] = 0.0
-        eps[2] = 0.0
-        return math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        return 0.0, 0.0, 0.0, math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
     dgamma = dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
     if dgamma <= 0.0:  # inside the cone (includes dev = 0 with tr <= 0)
-        eps[0], eps[1], eps[2] = e0, e1, e2
-        return 0.0
+        return e0, e1, e2, 0.0
     f = dgamma / dev  # dev > 0 here since tr <= 0
-    eps[0] = e0 - f * d0
-    eps[1] = e1 - f * d1
-    eps[2] = e2 - f * d2
+    return e0 - f * d0, e1 - f * d1, e2 - f * d2, dgamma
+
+
+@njit(cache=True, inline="always")
+def dp_return(e0, e1, e2, eps, lam, mu, alpha):
+    """Principal Hencky strains (e0, e1, e2) -> projected strains eps [3]; returns dgamma
+    >= 0 (plastic strain increment, 0 for an elastic state)."""
+    eps[0], eps[1], eps[2], dgamma = dp_return_scalar(e0, e1, e2, lam, mu, alpha)
     return dgamma
 
 
@@ -165,3 +166,65 @@ def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, ep
                 acc += Q[r, s] * eps[s] * Q[q, s]
             tau_out[r, q] = acc
             tau_out[q, r] = acc
+
+
+@njit(cache=True, inline="always")
+def elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_out, tau_out,
+                                p, lam, mu, alpha):
+    """`elastoplastic_update` in registers: trial F^E given as nine scalars (row major),
+    results written to F_out[p] and tau_out[p] ([n, 3, 3] arrays). Same method (eigen of
+    b = Fn Fn^T); exp(eps) / sigma is formed as exp(eps - log sigma). Returns False, writing
+    nothing, for an inverted or nearly collapsed Fn (det <= 0 or a stretch below
+    SIGMA_MIN): the caller then takes the full SVD path (`elastoplastic_update`)."""
+    det = (f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20)
+           + f02 * (f10 * f21 - f11 * f20))
+    b00 = f00 * f00 + f01 * f01 + f02 * f02
+    b01 = f00 * f10 + f01 * f11 + f02 * f12
+    b02 = f00 * f20 + f01 * f21 + f02 * f22
+    b11 = f10 * f10 + f11 * f11 + f12 * f12
+    b12 = f10 * f20 + f11 * f21 + f12 * f22
+    b22 = f20 * f20 + f21 * f21 + f22 * f22
+    l0, l1, l2, q00, q01, q02, q10, q11, q12, q20, q21, q22 = sym_eig3_scalar(
+        b00, b01, b02, b11, b12, b22, STRESS_JACOBI_REL_TOL)
+    if not (det > 0.0 and min(l0, min(l1, l2)) > SIGMA_MIN * SIGMA_MIN):
+        return False
+    e0, e1, e2 = 0.5 * math.log(l0), 0.5 * math.log(l1), 0.5 * math.log(l2)
+    eps0, eps1, eps2, dgamma = dp_return_scalar(e0, e1, e2, lam, mu, alpha)
+    if dgamma > 0.0:  # F^E = Q diag(exp(eps) / sigma) Q^T Fn
+        s0, s1, s2 = math.exp(eps0 - e0), math.exp(eps1 - e1), math.exp(eps2 - e2)
+        m00 = q00 * s0 * q00 + q01 * s1 * q01 + q02 * s2 * q02
+        m01 = q00 * s0 * q10 + q01 * s1 * q11 + q02 * s2 * q12
+        m02 = q00 * s0 * q20 + q01 * s1 * q21 + q02 * s2 * q22
+        m11 = q10 * s0 * q10 + q11 * s1 * q11 + q12 * s2 * q12
+        m12 = q10 * s0 * q20 + q11 * s1 * q21 + q12 * s2 * q22
+        m22 = q20 * s0 * q20 + q21 * s1 * q21 + q22 * s2 * q22
+        F_out[p, 0, 0] = m00 * f00 + m01 * f10 + m02 * f20
+        F_out[p, 0, 1] = m00 * f01 + m01 * f11 + m02 * f21
+        F_out[p, 0, 2] = m00 * f02 + m01 * f12 + m02 * f22
+        F_out[p, 1, 0] = m01 * f00 + m11 * f10 + m12 * f20
+        F_out[p, 1, 1] = m01 * f01 + m11 * f11 + m12 * f21
+        F_out[p, 1, 2] = m01 * f02 + m11 * f12 + m12 * f22
+        F_out[p, 2, 0] = m02 * f00 + m12 * f10 + m22 * f20
+        F_out[p, 2, 1] = m02 * f01 + m12 * f11 + m22 * f21
+        F_out[p, 2, 2] = m02 * f02 + m12 * f12 + m22 * f22
+    else:
+        F_out[p, 0, 0], F_out[p, 0, 1], F_out[p, 0, 2] = f00, f01, f02
+        F_out[p, 1, 0], F_out[p, 1, 1], F_out[p, 1, 2] = f10, f11, f12
+        F_out[p, 2, 0], F_out[p, 2, 1], F_out[p, 2, 2] = f20, f21, f22
+    tr = eps0 + eps1 + eps2
+    t0 = 2.0 * mu * eps0 + lam * tr  # principal Kirchhoff stress, Pa
+    t1 = 2.0 * mu * eps1 + lam * tr
+    t2 = 2.0 * mu * eps2 + lam * tr
+    tau01 = q00 * t0 * q10 + q01 * t1 * q11 + q02 * t2 * q12
+    tau02 = q00 * t0 * q20 + q01 * t1 * q21 + q02 * t2 * q22
+    tau12 = q10 * t0 * q20 + q11 * t1 * q21 + q12 * t2 * q22
+    tau_out[p, 0, 0] = q00 * t0 * q00 + q01 * t1 * q01 + q02 * t2 * q02
+    tau_out[p, 1, 1] = q10 * t0 * q10 + q11 * t1 * q11 + q12 * t2 * q12
+    tau_out[p, 2, 2] = q20 * t0 * q20 + q21 * t1 * q21 + q22 * t2 * q22
+    tau_out[p, 0, 1] = tau01
+    tau_out[p, 1, 0] = tau01
+    tau_out[p, 0, 2] = tau02
+    tau_out[p, 2, 0] = tau02
+    tau_out[p, 1, 2] = tau12
+    tau_out[p, 2, 1] = tau12
+    return True

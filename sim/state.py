@@ -8,10 +8,11 @@ reorder particles for memory locality. The grid is a block of nodes with an inte
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.kernels import permute_particles
 from sim.scene import Scene, Shape
 
 GRID_PAD_NODES = 2  # ghost nodes beyond each domain face (stencil reach + clamp margin)
@@ -36,10 +37,29 @@ class ParticleState:
     def n(self) -> int:
         return self.x.shape[0]
 
+    # spare arrays of the same shapes, reused by permute (no fresh 30 MB per reorder at 100k)
+    _spare: dict = field(default_factory=dict, repr=False, compare=False)
+
     def permute(self, order: np.ndarray) -> None:
-        """Reorder all arrays in place so that new slot k holds old slot order[k]."""
-        for name in ("x", "v", "C", "F", "tau", "mass", "vol0", "x0", "pid"):
-            setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+        """Reorder all arrays in place so that new slot k holds old slot order[k]. The
+        previous arrays become the spares of the next call: do not keep references to
+        particle arrays across a permute."""
+        n = self.n
+        src, dst = [], []
+        for name in PARTICLE_FIELDS:
+            a = getattr(self, name)
+            out = self._spare.get(name)
+            if (out is None or out.shape != a.shape or out.dtype != a.dtype
+                    or not out.flags.writeable):
+                out = np.empty_like(a)
+            src.append(a.reshape(n, -1))
+            dst.append(out.reshape(n, -1))
+            self._spare[name] = a
+            setattr(self, name, out)
+        permute_particles(order, tuple(src), tuple(dst))
+
+
+PARTICLE_FIELDS = ("x", "v", "C", "F", "tau", "mass", "vol0", "x0", "pid")
 
 
 @dataclass
@@ -114,9 +134,9 @@ def seed_particles(scene: Scene) -> ParticleState:
     eye = np.broadcast_to(np.eye(3), (n, 3, 3))
     return ParticleState(
         x=x,
-        v=np.ascontiguousarray(np.concatenate(vels, axis=0), dtype=np.float64),
+        v=np.array(np.concatenate(vels, axis=0), dtype=np.float64),
         C=np.zeros((n, 3, 3)),
-        F=np.ascontiguousarray(eye, dtype=np.float64),
+        F=np.array(eye, dtype=np.float64),  # a copy: for n = 1 a broadcast is contiguous
         tau=np.zeros((n, 3, 3)),
         mass=np.full(n, scene.material.density_kg_m3 * vol),
         vol0=np.full(n, vol),

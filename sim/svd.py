@@ -131,3 +131,61 @@ def svd3(F, U, sig, V, S):
     sig[1] = n1
     sig[2] = cx * U[0, 2] + cy * U[1, 2] + cz * U[2, 2]
     U[0, 2], U[1, 2], U[2, 2] = cx, cy, cz
+
+
+@njit(cache=True, inline="always")
+def _rot_scalar(app, aqq, apq, arp, arq, v0p, v1p, v2p, v0q, v1q, v2q, skip2):
+    """One Jacobi rotation on scalars zeroing a_pq of a symmetric 3x3 (r = the third
+    index), with the symmetric update of Numerical Recipes (a_pp - t a_pq, a_qq + t a_pq,
+    only the r row rotated) and eigenvector columns p, q rotated. Same rotation as
+    `_rotate` (t = tan of the angle, |angle| <= pi/4), formed with a shorter chain of
+    divisions and square roots: r = sqrt(d^2 + 4 a_pq^2), d = a_qq - a_pp,
+    t = 2 a_pq sign(d) / (|d| + r), c^2 = (1 + |d| / r) / 2 (= 1 / (1 + t^2)), s = t c.
+    Skipped (nothing changes) when a_pq^2 <= skip2. Returns (app, aqq, arp, arq, v0p, v1p,
+    v2p, v0q, v1q, v2q); the new a_pq is 0 unless skipped."""
+    if apq * apq <= skip2:
+        return app, aqq, arp, arq, v0p, v1p, v2p, v0q, v1q, v2q
+    d = aqq - app
+    ad = abs(d)
+    r = math.sqrt(d * d + 4.0 * apq * apq)
+    t = 2.0 * apq / (ad + r)
+    if d < 0.0:
+        t = -t
+    c = math.sqrt(0.5 + 0.5 * (ad / r))
+    s = t * c
+    return (app - t * apq, aqq + t * apq, c * arp - s * arq, s * arp + c * arq,
+            c * v0p - s * v0q, c * v1p - s * v1q, c * v2p - s * v2q,
+            s * v0p + c * v0q, s * v1p + c * v1q, s * v2p + c * v2q)
+
+
+@njit(cache=True, inline="always")
+def sym_eig3_scalar(a00, a01, a02, a11, a12, a22, rel_tol):
+    """`sym_eig3` on the six entries of a symmetric 3x3, in registers (no arrays): cyclic
+    Jacobi until off-diagonal^2 <= rel_tol * trace^2. Returns (l0, l1, l2, q00, q01, q02,
+    q10, q11, q12, q20, q21, q22): eigenvalues (no particular order) and the eigenvector
+    matrix Q (columns), A = Q diag(l) Q^T."""
+    q00, q01, q02 = 1.0, 0.0, 0.0
+    q10, q11, q12 = 0.0, 1.0, 0.0
+    q20, q21, q22 = 0.0, 0.0, 1.0
+    scale = a00 + a11 + a22
+    tol = rel_tol * scale * scale + TINY
+    skip2 = tol / 3.0  # a rotation of an entry this small is not needed to reach tol
+    for _ in range(JACOBI_MAX_SWEEPS):
+        if a01 * a01 + a02 * a02 + a12 * a12 <= tol:
+            break
+        # (p, q) = (0, 1), r = 2
+        a00, a11, a02, a12, q00, q10, q20, q01, q11, q21 = _rot_scalar(
+            a00, a11, a01, a02, a12, q00, q10, q20, q01, q11, q21, skip2)
+        if a01 * a01 > skip2:
+            a01 = 0.0
+        # (p, q) = (0, 2), r = 1
+        a00, a22, a01, a12, q00, q10, q20, q02, q12, q22 = _rot_scalar(
+            a00, a22, a02, a01, a12, q00, q10, q20, q02, q12, q22, skip2)
+        if a02 * a02 > skip2:
+            a02 = 0.0
+        # (p, q) = (1, 2), r = 0
+        a11, a22, a01, a02, q01, q11, q21, q02, q12, q22 = _rot_scalar(
+            a11, a22, a12, a01, a02, q01, q11, q21, q02, q12, q22, skip2)
+        if a12 * a12 > skip2:
+            a12 = 0.0
+    return a00, a11, a22, q00, q01, q02, q10, q11, q12, q20, q21, q22

@@ -6,9 +6,15 @@ import numpy as np
 import pytest
 from numba import njit
 
-from sim.plasticity import dp_project, dp_project_numpy, dp_yield
+from sim.plasticity import (
+    dp_project,
+    dp_project_numpy,
+    dp_yield,
+    elastoplastic_update,
+    elastoplastic_update_scalar,
+)
 from sim.scene import DPCone, Material
-from sim.svd import svd3
+from sim.svd import svd3, sym_eig3_scalar
 
 # tolerances (absolute, on O(1) quantities)
 SVD_TOL = 1e-12
@@ -22,6 +28,28 @@ def _svd_batch(Fs, Us, sigs, Vs):
     S = np.empty((3, 3))
     for p in range(Fs.shape[0]):
         svd3(Fs[p], Us[p], sigs[p], Vs[p], S)
+
+
+@njit(cache=True)
+def _eig_batch(A, lam, Q, rel_tol):
+    for p in range(A.shape[0]):
+        a = A[p]
+        (lam[p, 0], lam[p, 1], lam[p, 2], Q[p, 0, 0], Q[p, 0, 1], Q[p, 0, 2], Q[p, 1, 0],
+         Q[p, 1, 1], Q[p, 1, 2], Q[p, 2, 0], Q[p, 2, 1], Q[p, 2, 2]) = sym_eig3_scalar(
+            a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2], rel_tol)
+
+
+@njit(cache=True)
+def _update_batch(Fn, F_arr, tau_arr, F_sc, tau_sc, ok, lam, mu, alpha):
+    scratch = np.empty((4, 3, 3))
+    vec = np.empty((2, 3))
+    for p in range(Fn.shape[0]):
+        f = Fn[p]
+        elastoplastic_update(f, F_arr[p], tau_arr[p], lam, mu, alpha, scratch[0], scratch[1],
+                             scratch[2], scratch[3], vec[0], vec[1])
+        ok[p] = elastoplastic_update_scalar(f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1],
+                                            f[1, 2], f[2, 0], f[2, 1], f[2, 2], F_sc, tau_sc,
+                                            p, lam, mu, alpha)
 
 
 @njit(cache=True)
@@ -79,6 +107,43 @@ def test_svd_matches_numpy():
     det = np.linalg.det(F)
     nondegenerate = np.abs(det) > 1e-6
     assert np.all(np.sign(sig[nondegenerate, 2]) == np.sign(det[nondegenerate]))
+
+
+def test_register_eigen_solver_matches_numpy():
+    rng = np.random.default_rng(11)
+    F = _cases(rng)
+    A = F @ F.transpose(0, 2, 1)  # symmetric positive semi-definite, like b = F F^T
+    n = A.shape[0]
+    lam, Q = np.empty((n, 3)), np.empty((n, 3, 3))
+    _eig_batch(A, lam, Q, 1e-30)
+    scale = np.maximum(1.0, np.abs(A).max(axis=(1, 2)))[:, None, None]
+    recon = Q @ (lam[:, :, None] * Q.transpose(0, 2, 1))
+    assert (np.abs(recon - A) / scale).max() < SVD_TOL
+    assert np.abs(Q.transpose(0, 2, 1) @ Q - np.eye(3)).max() < SVD_TOL
+    ref = np.linalg.eigvalsh(A)
+    assert (np.abs(np.sort(lam, axis=1) - ref) / scale[:, :, 0]).max() < SVD_TOL
+
+
+def test_register_elastoplastic_update_matches_array_version():
+    rng = np.random.default_rng(5)
+    n = 4000
+    Fn = np.eye(3) + 0.02 * rng.normal(size=(n, 3, 3))  # elastic, shear yield and tension
+    Fn[:10] = np.eye(3)
+    Fn[10:20] = np.diag([0.97, 0.98, 0.99])  # purely volumetric compression: elastic
+    Fn[20] = np.diag([1.0, 1.0, -1.0])  # inverted: the scalar path declines
+    Fn[21] = np.diag([1.0, 1.0, 1e-6])  # collapsed: declines
+    lam, mu, alpha = SAND.lame_lambda_pa, SAND.shear_modulus_pa, SAND.dp_alpha
+    F_arr, tau_arr = np.empty_like(Fn), np.empty_like(Fn)
+    F_sc, tau_sc = np.full_like(Fn, np.nan), np.full_like(Fn, np.nan)
+    ok = np.zeros(n, dtype=np.bool_)
+    _update_batch(Fn, F_arr, tau_arr, F_sc, tau_sc, ok, lam, mu, alpha)
+    assert not ok[20] and not ok[21] and ok[:20].all() and ok[22:].all()
+    plastic = np.abs(F_arr - Fn).max(axis=(1, 2)) > 1e-12
+    assert 100 < plastic[ok].sum() < ok.sum() - 100  # both branches exercised
+    assert np.array_equal(F_sc[:20], F_arr[:20])  # elastic: F kept exactly
+    # both stop the Jacobi sweeps at STRESS_JACOBI_REL_TOL (stress ~1e-11 relative)
+    assert np.abs(F_sc[ok] - F_arr[ok]).max() < 1e-10
+    assert np.abs(tau_sc[ok] - tau_arr[ok]).max() / SAND.youngs_modulus_pa < 1e-10
 
 
 def _strains(rng, n=5000):

@@ -194,3 +194,48 @@ def test_find_nonfinite_reports_first_slot_and_field():
     ps.tau[200, 0, 0] = np.nan
     p, code = kernels.find_nonfinite(ps.x, ps.v, ps.C, ps.F, ps.tau)
     assert (p, kernels.FIELD_NAMES[code]) == (37, "deformation_gradient")
+
+
+def test_parallel_counting_sort_is_the_stable_sort():
+    sim = Simulator(load_scene(builtin_scene_path("column_13k")))
+    sim.advance_to(0.02)
+    ps, g, b = sim.particles, sim.grid, sim._bins
+    rng = np.random.default_rng(3)
+    x = ps.x[rng.permutation(ps.n)]  # scrambled storage order
+    shape = np.array(g.shape, np.int64)
+    bad, n_active = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, b.nblocks3,
+                                          b.block_start, b.order, b.block_slot,
+                                          b.active_blocks, b.key, b.counts, b.first_bad)
+    assert bad == -1
+    X = (x - g.x0) / g.dx
+    cell = np.floor(X - 0.5).astype(np.int64) // kernels.BLOCK_CELLS
+    nb3 = b.nblocks3
+    key = (cell[:, 0] * nb3[1] + cell[:, 1]) * nb3[2] + cell[:, 2]
+    assert np.array_equal(b.key, key)
+    assert np.array_equal(b.order, np.argsort(key, kind="stable"))
+    counts = np.bincount(key, minlength=int(nb3.prod()))
+    assert np.array_equal(np.diff(b.block_start), counts)
+    active = np.flatnonzero(counts)
+    assert n_active == active.size
+    assert np.array_equal(b.active_blocks[:n_active], active)
+    assert np.array_equal(b.block_slot[active], np.arange(n_active))
+    assert (b.block_slot[counts == 0] == -1).all()
+    # the first particle (in storage order) whose stencil leaves the grid is reported
+    x[[4000, 9000]] = [-1.0, 0.0, 0.0]
+    bad, _ = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, b.nblocks3, b.block_start,
+                                   b.order, b.block_slot, b.active_blocks, b.key, b.counts,
+                                   b.first_bad)
+    assert bad == 4000
+
+
+def test_permute_reorders_every_array_and_reuses_only_writable_spares():
+    ps = seed_particles(load_scene(builtin_scene_path("tiny")))
+    ps.v[:] = np.random.default_rng(1).normal(size=ps.v.shape)
+    ps.F = np.broadcast_to(np.eye(3), ps.F.shape)  # read-only, as a broadcast can be
+    before = {name: getattr(ps, name).copy() for name in ("x", "v", "F", "pid")}
+    order = np.random.default_rng(2).permutation(ps.n)
+    ps.permute(order)
+    ps.permute(order)  # the read-only F is not reused as a destination
+    for name, a in before.items():
+        assert np.array_equal(getattr(ps, name), a[order][order])
+        assert getattr(ps, name).flags.writeable

@@ -303,7 +303,4 @@ def decode_message(payload):
 
 def decode_as(payload, cls):
     """Decode and require a given message type."""
-    kind = peek_kind(payload)
-    if kind != cls.KIND:
-        raise ProtocolError(f"expected a {cls.KIND.name.lower()} message, got {kind.name.lower()}")
-    return cls.from_envelope(decode(payload, META_TYPES.get(kind, dict)))
+    return cls.from_envelope(decode(payload, META_TYPES.get(cls.KIND, dict), expect=cls.KIND))

@@ -100,7 +100,7 @@ def _header_decoder(meta_type) -> msgspec.json.Decoder:
     return _DECODERS[meta_type]
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Envelope:
     """A decoded envelope: kind, sender's time, header meta and array views."""
 
@@ -214,10 +214,11 @@ def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
     return kind, hlen, total, sent_ns
 
 
-def decode(payload, meta_type: Any = dict) -> Envelope:
+def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) -> Envelope:
     """Validate and decode an envelope. Arrays are views of `payload` (no copy).
 
-    `meta_type` is the msgspec type of the header meta (a Struct per message kind, or dict).
+    `meta_type` is the msgspec type of the header meta (a Struct per message kind, or dict);
+    with `expect`, any other message kind is refused before the header is read.
     Raises ProtocolError naming the problem; nothing large is allocated before the declared
     sizes have been checked against the bytes received.
     """
@@ -226,6 +227,8 @@ def decode(payload, meta_type: Any = dict) -> Envelope:
     except TypeError as exc:
         raise ProtocolError(f"payload is not a bytes-like object: {exc}") from None
     kind, hlen, total, sent_ns = _prefix(view)
+    if expect is not None and kind != expect:
+        raise ProtocolError(f"expected a {expect.name.lower()} message, got {kind.name.lower()}")
     try:
         header = _header_decoder(meta_type).decode(view[PREFIX_SIZE:PREFIX_SIZE + hlen])
     except msgspec.ValidationError as exc:

@@ -157,12 +157,21 @@ def _depth_range(f: RayFrame, box: np.ndarray, radius: float) -> tuple[float, fl
     return float(depth.min()) - radius, float(depth.max())
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _clear(hit_t, hit_id, height, width):
+    for j in prange(height):
+        for q in range(j * width, (j + 1) * width):
+            hit_t[q], hit_id[q] = math.inf, -1
+
+
 def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, height: int,
-         box: np.ndarray | None = None, metres: bool = True) -> tuple[np.ndarray, np.ndarray]:
+         box: np.ndarray | None = None, metres: bool = True,
+         out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Closest sphere hit per pixel, row-major from the top left: distances [h * w] and
     particle ids [h * w] (-1 where nothing is hit; distance inf). Distances are in m, or with
     metres=False the camera depth of the hit (m along the view direction, the parameter of
-    `pixel_ray_unnormalized`). box [2, 3] (m) bounds the positions if known."""
+    `pixel_ray_unnormalized`). box [2, 3] (m) bounds the positions if known; `out` reuses
+    (float64 [h * w], int32 [h * w]) buffers across frames."""
     pos = as_positions(positions)
     n = len(pos)
     if box is None:
@@ -188,8 +197,10 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     rec_z, rec_c = np.empty(m), np.empty((m, 3))
     _bin_fill(pos, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, rec_id, rec_box,
               rec_z, rec_c)
-    hit_t = np.full(width * height, np.inf)
-    hit_id = np.full(width * height, -1, np.int64)
+    if out is None:
+        out = (np.empty(width * height), np.empty(width * height, np.int32))
+    hit_t, hit_id = out
+    _clear(hit_t, hit_id, height, width)
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
                 rec_box, rec_z, rec_c, n_workers, hit_t, hit_id)
     if metres:

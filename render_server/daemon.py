@@ -30,7 +30,7 @@ from render_server.assemble import (
     AssembledStep,
     StepAssembler,
 )
-from render_server.render import encode_png, prepare, render
+from render_server.render import Canvas, encode_png, prepare, render
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
@@ -104,6 +104,7 @@ class RenderServer:
         self._lock = threading.Lock()
         self._assembler = StepAssembler(options.timeout_s, options.max_pending)
         self._latest = LatestStep()
+        self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
         self._stop = threading.Event()
         self._last_error_event = 0.0
         warm_up()  # compile the kernels now, not on the first step
@@ -186,8 +187,8 @@ class RenderServer:
                             f"has {sorted(step.fields)}")
                 continue
             t1 = time.perf_counter()
-            image = render(scene, step.fields[view.field], view,
-                           self.options.shadows)
+            canvas = self._canvases.setdefault(view.name, Canvas(view.width, view.height))
+            image = render(scene, step.fields[view.field], view, self.options.shadows, canvas)
             render_s = time.perf_counter() - t1  # image synthesis; PNG encoding is output
             png = encode_png(image)
             if self.options.write_png:

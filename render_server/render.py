@@ -82,8 +82,7 @@ def _shade(f, width, height, hit_t, hit_id, metric, positions, radius, field, lu
             q = j * width + i
             p = hit_id[q]
             if p < 0:
-                for c in range(3):
-                    out[q, c] = np.uint8(min(max(background[c], 0.0), 1.0) * 255.0 + 0.5)
+                out[q, 0], out[q, 1], out[q, 2] = background[0], background[1], background[2]
                 continue
             if metric:
                 ox, oy, oz, dx, dy, dz = pixel_ray(f, i, j, width, height)
@@ -134,23 +133,39 @@ def _shadow_mask(scene: Scene, view: View, t: np.ndarray, ids: np.ndarray,
     return mask
 
 
-def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False) -> np.ndarray:
-    """The image [height, width, 3] uint8 of `view`: spheres colored by `field` ([n] values,
+class Canvas:
+    """Per-pixel buffers of one image size, reused frame after frame (no page faults)."""
+
+    def __init__(self, width: int, height: int):
+        self.size = (width, height)
+        self.hit_t = np.empty(width * height)  # hit distance or depth, m
+        self.hit_id = np.empty(width * height, np.int32)  # particle index, -1: none
+        self.rgb = np.empty((width * height, 3), np.uint8)
+        self.unshadowed = np.zeros(width * height, np.bool_)  # stays all False
+
+
+def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
+           canvas: Canvas | None = None) -> np.ndarray:
+    """The image [height, width, 3] uint8 of `view` (a view of the canvas's buffer, valid until
+    the canvas renders again): spheres colored by `field` ([n] values,
     or [n, k] vectors by magnitude, computed only for visible particles) with the
     view's colormap and range, Lambert + ambient shading, optional shadows."""
     frame = ray_frame(view.camera, view.width, view.height)
     box = np.array([scene.bricks.boxes[:, 0].min(axis=0), scene.bricks.boxes[:, 1].max(axis=0)])
+    if canvas is None or canvas.size != (view.width, view.height):
+        canvas = Canvas(view.width, view.height)
     t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height, box,
-                  metres=shadows)  # shadow rays start from metric hit points
+                  metres=shadows,  # shadow rays start from metric hit points
+                  out=(canvas.hit_t, canvas.hit_id))
     light = key_light(view)
-    shadowed = (_shadow_mask(scene, view, t, ids, light) if shadows
-                else np.zeros(len(ids), np.bool_))
+    shadowed = _shadow_mask(scene, view, t, ids, light) if shadows else canvas.unshadowed
     cmap = preset(view.colormap)
-    out = np.empty((len(ids), 3), np.uint8)
+    out = canvas.rgb
+    background = (np.clip(np.asarray(view.background), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     _shade(frame, view.width, view.height, t, ids, shadows, scene.positions, scene.radius,
            field_columns(field), cmap.lut(), float(view.range[0]),
            float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
-           np.asarray(view.background, np.float64), out)
+           background, out)
     return out.reshape(view.height, view.width, 3)
 
 

@@ -194,15 +194,6 @@ class Recorder:
                 continue
             self.writer.write_payload(item.key, item.payload, item.recv_ns)
 
-    def wait_for(self, count: int, timeout_s: float) -> bool:
-        """Wait until `count` messages are written (polls the counter; bounded by timeout)."""
-        deadline = time.monotonic() + timeout_s
-        while self.written < count:
-            if time.monotonic() > deadline:
-                return False
-            self._stop.wait(0.01)
-        return True
-
     def close(self) -> None:
         """Stop receiving, write what is queued, finish the file."""
         self._inbox.close()

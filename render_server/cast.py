@@ -20,7 +20,7 @@ from numba import njit, prange
 from render_server.bricks import as_positions, extent
 from render_server.camera import RayFrame, pixel_ray_unnormalized
 
-BANDS_PER_WORKER = 16
+BANDS_PER_WORKER = 8  # fewer, taller bands: fewer spheres listed twice (A/B: 1M -15%)
 DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; not correctness)
 CHUNKS_PER_WORKER = 4  # particle chunks per thread in the binning passes
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)

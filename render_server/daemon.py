@@ -186,8 +186,10 @@ class RenderServer:
                 self._error(f"view {view.name!r} needs field {view.field!r}; step {step.step} "
                             f"has {sorted(step.fields)}")
                 continue
+            canvas = self._canvases.get(view.name)
+            if canvas is None or canvas.size != (view.width, view.height):
+                canvas = self._canvases[view.name] = Canvas(view.width, view.height)
             t1 = time.perf_counter()
-            canvas = self._canvases.setdefault(view.name, Canvas(view.width, view.height))
             image = render(scene, step.fields[view.field], view, self.options.shadows, canvas)
             render_s = time.perf_counter() - t1  # image synthesis; PNG encoding is output
             png = encode_png(image)

@@ -166,12 +166,14 @@ def _clear(hit_t, hit_id, height, width):
 
 def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, height: int,
          box: np.ndarray | None = None, metres: bool = True,
-         out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+         out: tuple[np.ndarray, np.ndarray] | None = None, out_clear: bool = False
+         ) -> tuple[np.ndarray, np.ndarray]:
     """Closest sphere hit per pixel, row-major from the top left: distances [h * w] and
     particle ids [h * w] (-1 where nothing is hit; distance inf). Distances are in m, or with
     metres=False the camera depth of the hit (m along the view direction, the parameter of
     `pixel_ray_unnormalized`). box [2, 3] (m) bounds the positions if known; `out` reuses
-    (float64 [h * w], int32 [h * w]) buffers across frames."""
+    (float64 [h * w], int32 [h * w]) buffers across frames; with out_clear they already hold
+    inf and -1 everywhere (the renderer's shading pass leaves them so)."""
     pos = as_positions(positions)
     n = len(pos)
     if box is None:
@@ -200,7 +202,8 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     if out is None:
         out = (np.empty(width * height), np.empty(width * height, np.int32))
     hit_t, hit_id = out
-    _clear(hit_t, hit_id, height, width)
+    if not out_clear:
+        _clear(hit_t, hit_id, height, width)
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
                 rec_box, rec_z, rec_c, n_workers, hit_t, hit_id)
     if metres:

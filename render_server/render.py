@@ -75,7 +75,8 @@ def key_light(view: View) -> np.ndarray:
 def _shade(f, width, height, hit_t, hit_id, metric, positions, radius, field, lut, vmin, vmax,
            nan_rgb, light, shadowed, background, out):
     """Lambert + ambient shading of every pixel into out [h * w, 3] uint8; hit_t in m along
-    unit rays (metric) or in camera depth along `pixel_ray_unnormalized`."""
+    unit rays (metric) or in camera depth along `pixel_ray_unnormalized`. Leaves hit_t and
+    hit_id cleared (inf, -1) for the next frame, saving a pass over the image."""
     scale = (lut.shape[0] - 1) / (vmax - vmin) if vmax > vmin else 0.0
     for j in prange(height):
         for i in range(width):
@@ -89,6 +90,7 @@ def _shade(f, width, height, hit_t, hit_id, metric, positions, radius, field, lu
             else:
                 ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
             t = hit_t[q]
+            hit_t[q], hit_id[q] = math.inf, -1
             nx = (ox + dx * t - positions[p, 0]) / radius
             ny = (oy + dy * t - positions[p, 1]) / radius
             nz = (oz + dz * t - positions[p, 2]) / radius
@@ -138,8 +140,9 @@ class Canvas:
 
     def __init__(self, width: int, height: int):
         self.size = (width, height)
-        self.hit_t = np.empty(width * height)  # hit distance or depth, m
-        self.hit_id = np.empty(width * height, np.int32)  # particle index, -1: none
+        self.hit_t = np.full(width * height, np.inf)  # hit distance or depth, m
+        self.hit_id = np.full(width * height, -1, np.int32)  # particle index, -1: none
+        self.clear = True  # hit buffers hold inf / -1 everywhere
         self.rgb = np.empty((width * height, 3), np.uint8)
         self.unshadowed = np.zeros(width * height, np.bool_)  # stays all False
 
@@ -154,9 +157,10 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
     box = np.array([scene.bricks.boxes[:, 0].min(axis=0), scene.bricks.boxes[:, 1].max(axis=0)])
     if canvas is None or canvas.size != (view.width, view.height):
         canvas = Canvas(view.width, view.height)
+    clear, canvas.clear = canvas.clear, False  # until shading has cleared them again
     t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height, box,
                   metres=shadows,  # shadow rays start from metric hit points
-                  out=(canvas.hit_t, canvas.hit_id))
+                  out=(canvas.hit_t, canvas.hit_id), out_clear=clear)
     light = key_light(view)
     shadowed = _shadow_mask(scene, view, t, ids, light) if shadows else canvas.unshadowed
     cmap = preset(view.colormap)
@@ -166,6 +170,7 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
            field_columns(field), cmap.lut(), float(view.range[0]),
            float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
            background, out)
+    canvas.clear = True
     return out.reshape(view.height, view.width, 3)
 
 

@@ -62,3 +62,17 @@ def test_uhd_image_size():
                 field="value", colormap="Grayscale", range=(0.0, 1.0))
     images, _ = render_step(np.zeros((3, 3), np.float32), {"value": np.ones(3)}, 0.2, [view])
     assert images["uhd"].shape == (2160, 3840, 3) and images["uhd"].any()
+
+
+def test_reused_canvas_renders_like_a_fresh_one():
+    from render_server.render import Canvas, prepare, render
+
+    rng = np.random.default_rng(3)
+    view = one_sphere_view()
+    canvas = Canvas(view.width, view.height)
+    for _ in range(3):  # different scenes through one canvas
+        pos = (rng.random((200, 3)) - 0.5).astype(np.float32)
+        scene = prepare(pos, 0.04, grids=False)
+        values = rng.random(200)
+        reused = render(scene, values, view, canvas=canvas).copy()
+        np.testing.assert_array_equal(reused, render(scene, values, view))

@@ -129,6 +129,9 @@ def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, re
                 cx, cy, cz = rec_c[k, 0], rec_c[k, 1], rec_c[k, 2]
                 for j in range(ja, jb + 1):
                     for i in range(ia, ib + 1):
+                        q = j * width + i
+                        if hit_t[q] < zmin:  # something nearer than this whole sphere
+                            continue
                         # unnormalized direction: t is in units of |d|, the same for every
                         # sphere of this pixel, so comparisons hold; scaled to m at the end
                         ox, oy, oz, dx, dy, dz = pixel_ray_unnormalized(f, i, j, width, height)
@@ -144,7 +147,6 @@ def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, re
                             t = (-b + s) / a
                         if t < 0.0:
                             continue
-                        q = j * width + i
                         if t < hit_t[q] or (t == hit_t[q] and p < hit_id[q]):
                             hit_t[q], hit_id[q] = t, p
 

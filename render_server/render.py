@@ -32,6 +32,7 @@ DIFFUSE = 0.7
 KEY_LIGHT_CAMERA = np.array([-0.4, 0.6, 0.7])
 SHADOW_OFFSET_RADII = 1e-3  # shadow rays start this far off the surface, in sphere radii
 BRICKS_PER_THREAD = 4
+PARTICLES_PER_BRICK_MIN = 16_384  # below this, splitting costs more setup than it saves
 PNG_COMPRESS_LEVEL = 1  # zlib level: fast, still lossless
 
 
@@ -45,9 +46,11 @@ class Scene:
     grids: BrickGrids | None  # per-brick uniform grids, built when shadow rays are cast
 
 
-def default_bricks() -> int:
-    n = BRICKS_PER_THREAD * numba.get_num_threads()
-    return 1 << (n - 1).bit_length()
+def default_bricks(particles: int) -> int:
+    """A power of two: BRICKS_PER_THREAD per thread, fewer for small steps."""
+    most = BRICKS_PER_THREAD * numba.get_num_threads()
+    wanted = max(1, min(most, particles // PARTICLES_PER_BRICK_MIN))
+    return 1 << (wanted.bit_length() - 1)
 
 
 def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None,
@@ -55,7 +58,7 @@ def prepare(positions: np.ndarray, radius: float, n_bricks: int | None = None,
     """Setup: k-d bricks for spheres of `radius` (m) and, with `grids`, their uniform grids
     (needed by shadow rays; primary rays are cast in object order without them)."""
     pos = as_positions(positions)
-    bricks = repartition(pos, radius, n_bricks or default_bricks())
+    bricks = repartition(pos, radius, n_bricks or default_bricks(len(pos)))
     return Scene(pos, radius, bricks, build_grids(pos, radius, bricks) if grids else None)
 
 

@@ -34,7 +34,7 @@ lint: $(STAMP)
 # numba's on-disk cache tracks a kernel's own file only: clear it after editing a helper
 # that other kernels inline (e.g. sim/svd.py, render_server/camera.py)
 clean-numba:
-	find . -path ./$(VENV) -prune -o \( -name '*.nbi' -o -name '*.nbc' \) -print -delete
+	find . -not -path './$(VENV)/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete
 
 clean: clean-numba
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

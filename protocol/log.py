@@ -34,6 +34,7 @@ from protocol.messages import Chunk, Event, Frame, Timing, decode_as
 from protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
 from protocol.session import Inbox
 from protocol.spec import Spec
+from protocol.wire import PREFIX_SIZE, SENT_NS_OFFSET
 
 PROFILE = "minority"
 REJECTED_TOPIC = f"{keys.ROOT}/_rejected"
@@ -113,8 +114,8 @@ class LogWriter:
 
     def _reject(self, key: str, payload: bytes, reason: str, log_ns: int) -> str:
         sent_ns = 0
-        if len(payload) >= 32:
-            sent_ns = max(0, struct.unpack_from("<q", payload, 24)[0])
+        if len(payload) >= PREFIX_SIZE:
+            sent_ns = max(0, struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0])
         record = {"key": str(key)[:1024], "reason": reason, "bytes": len(payload),
                   "payload_b64": base64.b64encode(payload).decode("ascii")}
         with self._lock:

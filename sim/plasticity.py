@@ -105,6 +105,18 @@ def _write_projected(Fn, U, sig, V, eps, F_out, tau_out, lam, mu):
 
 
 @njit(cache=True, inline="always")
+def _q_diag_qt(Q, d, out):
+    """out [3, 3] = Q diag(d) Q^T (symmetric), Q [3, 3], d [3]."""
+    for r in range(3):
+        for q in range(r, 3):
+            acc = 0.0
+            for s in range(3):
+                acc += Q[r, s] * d[s] * Q[q, s]
+            out[r, q] = acc
+            out[q, r] = acc
+
+
+@njit(cache=True, inline="always")
 def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, eps):
     """Trial elastic gradient Fn [3, 3] -> projected F^E (F_out [3, 3]) and Kirchhoff stress
     (tau_out [3, 3], Pa). B, Q, U, V [3, 3] and sig, eps [3] are scratch.
@@ -140,13 +152,7 @@ def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, ep
         sig[0] = math.exp(eps[0]) / math.sqrt(l0)
         sig[1] = math.exp(eps[1]) / math.sqrt(l1)
         sig[2] = math.exp(eps[2]) / math.sqrt(l2)
-        for r in range(3):
-            for q in range(r, 3):
-                acc = 0.0
-                for s in range(3):
-                    acc += Q[r, s] * sig[s] * Q[q, s]
-                U[r, q] = acc
-                U[q, r] = acc
+        _q_diag_qt(Q, sig, U)
         for r in range(3):
             for q in range(3):
                 acc = 0.0
@@ -159,13 +165,7 @@ def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, ep
                 F_out[r, q] = Fn[r, q]
     for s in range(3):
         eps[s] = 2.0 * mu * eps[s] + lam * tr  # principal Kirchhoff stress, Pa
-    for r in range(3):
-        for q in range(r, 3):
-            acc = 0.0
-            for s in range(3):
-                acc += Q[r, s] * eps[s] * Q[q, s]
-            tau_out[r, q] = acc
-            tau_out[q, r] = acc
+    _q_diag_qt(Q, eps, tau_out)
 
 
 @njit(cache=True, inline="always")

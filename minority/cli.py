@@ -166,9 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_sim)
 
-    p = sub.add_parser("oracle", help="GNS surrogate: dataset, train, rollout, spec",
-                       description="Train the GNS surrogate and derive oracle specs from it.")
-    p.set_defaults(func=_not_built("oracle"))
+    from minority.oracle_cli import add_oracle_parser
+    add_oracle_parser(sub)
 
     p = sub.add_parser("replay", help="re-render or re-publish a recorded MCAP log",
                        description="Re-render a recorded run with a new spec, or re-publish it.")

@@ -35,7 +35,7 @@ def test_network_flags_are_shared():
         assert str(args.config) == "z.json5"
 
 
-@pytest.mark.parametrize("argv", [["oracle"], ["report", "x.mcap"], ["demo"]])
+@pytest.mark.parametrize("argv", [["report", "x.mcap"], ["demo"]])
 def test_unbuilt_subcommand_says_so(argv, capsys):
     assert main(argv) == NOT_BUILT
     err = capsys.readouterr().err

@@ -1,0 +1,152 @@
+"""GNS dataset: MPM trajectories packed per split, with the metadata the model is built from.
+
+Layout of a dataset directory:
+
+    metadata.json   dim, bounds, connectivity radius, frame interval, normalization
+                    statistics, the scenes of every split, units
+    train.h5        one group per scene: positions [frames, n, 3] float32 (m),
+    valid.h5        attrs friction_angle_deg, bounds_m [3, 2] (m), and the scene's geometry
+    test.h5
+
+Model units: positions in m, velocity = displacement per frame (m/frame), acceleration =
+change of that per frame (m/frame^2); frame = `frame_interval_s`.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+FORMAT = "minority-gns-dataset/1"
+SPLITS = ("train", "valid", "test")
+INPUT_VELOCITIES = 5  # C: velocities of the last C frames are node features
+
+
+class DatasetError(ValueError):
+    """A dataset or trajectory that cannot be read or does not match the metadata."""
+
+
+@dataclass
+class Trajectory:
+    name: str
+    positions: np.ndarray  # [frames, n, 3] float32, m
+    friction_angle_deg: float
+    bounds_m: np.ndarray  # [3, 2] lo, hi per axis, m
+
+
+def read_sim_trajectory(path: Path, stride: int) -> tuple[np.ndarray, dict]:
+    """Positions every stride-th frame [frames, n, 3] and the run's attributes."""
+    with h5py.File(path, "r") as f:
+        frames = len(f["time"])
+        pos = f["positions"][:frames:stride]
+        attrs = {k: f.attrs[k] for k in ("output_interval_s", "bounds_m", "particle_spacing_m",
+                                         "scene_name")}
+        attrs["friction_angle_deg"] = float(f["material"][0])
+    if not np.isfinite(pos).all():
+        raise DatasetError(f"{path}: non-finite positions")
+    return pos.astype(np.float32), attrs
+
+
+def _stats(trajs: list[np.ndarray]) -> dict:
+    vel_sum = np.zeros(3)
+    vel_sq = np.zeros(3)
+    acc_sum = np.zeros(3)
+    acc_sq = np.zeros(3)
+    nv = na = 0
+    for pos in trajs:
+        p = pos.astype(np.float64)
+        v = np.diff(p, axis=0)
+        a = np.diff(v, axis=0)
+        vel_sum += v.sum(axis=(0, 1))
+        vel_sq += (v * v).sum(axis=(0, 1))
+        acc_sum += a.sum(axis=(0, 1))
+        acc_sq += (a * a).sum(axis=(0, 1))
+        nv += v.shape[0] * v.shape[1]
+        na += a.shape[0] * a.shape[1]
+    vm, am = vel_sum / nv, acc_sum / na
+    return {"vel_mean": vm.tolist(), "vel_std": np.sqrt(vel_sq / nv - vm * vm).tolist(),
+            "acc_mean": am.tolist(), "acc_std": np.sqrt(acc_sq / na - am * am).tolist()}
+
+
+def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
+          connectivity_radius_m: float, config_path: str = "", log=sys.stderr) -> dict:
+    """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir; return the metadata."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}
+    scenes, train_pos, frame_dt, spacing = [], [], set(), set()
+    bounds_hi = np.zeros(3)
+    phis = []
+    try:
+        for plan, path in runs:
+            pos, attrs = read_sim_trajectory(path, stride)
+            dt = float(attrs["output_interval_s"]) * stride
+            frame_dt.add(round(dt, 12))
+            spacing.add(round(float(attrs["particle_spacing_m"]), 9))
+            g = files[plan.split].create_group(plan.name)
+            g.create_dataset("positions", data=pos, chunks=(1, *pos.shape[1:]))
+            g.attrs["friction_angle_deg"] = attrs["friction_angle_deg"]
+            g.attrs["bounds_m"] = np.asarray(attrs["bounds_m"], np.float64)
+            for key in ("length_m", "width_m", "height_m", "aspect_ratio"):
+                g.attrs[key] = float(getattr(plan, key))
+            bounds_hi = np.maximum(bounds_hi, np.asarray(attrs["bounds_m"])[:, 1])
+            if plan.split == "train":
+                train_pos.append(pos)
+                phis.append(attrs["friction_angle_deg"])
+            scenes.append({"name": plan.name, "split": plan.split, "particles": pos.shape[1],
+                           "frames": pos.shape[0], "aspect_ratio": round(plan.aspect_ratio, 4),
+                           "length_m": plan.length_m, "width_m": plan.width_m,
+                           "height_m": plan.height_m,
+                           "friction_angle_deg": attrs["friction_angle_deg"],
+                           "source": str(path)})
+            print(f"dataset: {plan.split}/{plan.name} {pos.shape[0]} frames x {pos.shape[1]} "
+                  "particles", file=log, flush=True)
+    finally:
+        for f in files.values():
+            f.close()
+    if len(frame_dt) != 1 or len(spacing) != 1:
+        raise DatasetError(f"runs differ in frame interval {sorted(frame_dt)} s or particle "
+                           f"spacing {sorted(spacing)} m; one dataset needs one of each")
+    if not train_pos:
+        raise DatasetError("no train scenes")
+    meta = {
+        "format": FORMAT, "dim": 3, "input_velocities": INPUT_VELOCITIES,
+        "bounds_m": [[0.0, float(h)] for h in bounds_hi],
+        "connectivity_radius_m": connectivity_radius_m,
+        "particle_spacing_m": spacing.pop(), "frame_interval_s": frame_dt.pop(),
+        **_stats(train_pos),
+        "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)),
+        "scenes": scenes, "config": str(config_path),
+        "units": {"positions": "m", "velocity": "m/frame", "acceleration": "m/frame^2",
+                  "frame_interval_s": "s", "friction": "deg"},
+    }
+    (out / "metadata.json").write_text(json.dumps(meta, indent=1))
+    return meta
+
+
+def load_metadata(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        meta = json.loads((path / "metadata.json").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read metadata.json ({exc})") from None
+    if meta.get("format") != FORMAT:
+        raise DatasetError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    return meta
+
+
+def load_split(path: str | Path, split: str) -> list[Trajectory]:
+    """Every trajectory of a split, in memory."""
+    trajs = []
+    with h5py.File(Path(path) / f"{split}.h5", "r") as f:
+        for name in sorted(f):
+            g = f[name]
+            trajs.append(Trajectory(name, g["positions"][...],
+                                    float(g.attrs["friction_angle_deg"]),
+                                    np.asarray(g.attrs["bounds_m"], np.float64)))
+    return trajs

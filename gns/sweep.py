@@ -1,0 +1,188 @@
+"""The MPM sweep behind the GNS dataset: plan scenes from a config, run them with `minority sim`.
+
+gns does not import sim: scenes are TOML text from the config's template, and each run is a
+`python -m minority sim` subprocess writing one HDF5 trajectory (format in sim/output.py).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+import tomllib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+SPLITS = ("train", "valid", "test")
+MAX_DRAWS = 100_000  # rejection-sampling attempts before the config is declared infeasible
+
+
+class SweepError(ValueError):
+    """A sweep config that cannot be planned or a run that failed."""
+
+
+@dataclass(frozen=True)
+class ScenePlan:
+    name: str
+    split: str
+    length_m: float  # L0
+    width_m: float  # channel width = column width
+    height_m: float  # H0
+    friction_angle_deg: float
+    domain_length_m: float
+    particles: int
+
+    @property
+    def aspect_ratio(self) -> float:
+        return self.height_m / self.length_m
+
+
+@dataclass
+class SweepConfig:
+    path: Path
+    template: str
+    seed: int
+    duration_s: float
+    output_interval_s: float
+    stride: int
+    connectivity_radius_m: float
+    geometry: dict
+    splits: dict
+    named: list[dict] = field(default_factory=list)
+
+    @property
+    def spacing_m(self) -> float:
+        return float(self.geometry["particle_spacing_m"])
+
+
+def load_config(path: str | Path) -> SweepConfig:
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+        template = (path.parent / raw["template"]).read_text()
+        cfg = SweepConfig(path=path, template=template, seed=int(raw["seed"]),
+                          duration_s=float(raw["duration_s"]),
+                          output_interval_s=float(raw["output_interval_s"]),
+                          stride=int(raw["stride"]),
+                          connectivity_radius_m=float(raw["connectivity_radius_m"]),
+                          geometry=raw["geometry"], splits=raw["splits"],
+                          named=list(raw.get("named", [])))
+    except KeyError as exc:
+        raise SweepError(f"{path}: missing key {exc}") from None
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise SweepError(f"{path}: {exc}") from None
+    if cfg.stride < 1 or cfg.connectivity_radius_m <= 0:
+        raise SweepError(f"{path}: stride must be >= 1 and connectivity_radius_m > 0")
+    return cfg
+
+
+def _in_bands(x: float, bands: list) -> bool:
+    return any(lo <= x <= hi for lo, hi in bands)
+
+
+def _count(length: float, width: float, height: float, s: float) -> int:
+    return round(length / s) * round(width / s) * round(height / s)
+
+
+def plan(cfg: SweepConfig) -> list[ScenePlan]:
+    """Scenes of every split, deterministic in the config's seed."""
+    g, sp = cfg.geometry, cfg.splits
+    s, cell = cfg.spacing_m, float(g["cell_size_m"])
+    rng = np.random.default_rng(cfg.seed)
+    held_a, held_phi = sp["held_out_aspect_ratio"], sp["held_out_friction_angle_deg"]
+    plans: list[ScenePlan] = []
+    for split in SPLITS:
+        want, draws = int(sp[split]), 0
+        while sum(p.split == split for p in plans) < want:
+            draws += 1
+            if draws > MAX_DRAWS:
+                raise SweepError(f"{cfg.path}: cannot draw {want} {split} scenes within the "
+                                 "geometry bounds; widen the ranges")
+            length = round(rng.uniform(*g["length_m"]) / s) * s
+            width = round(rng.uniform(*g["width_m"]) / cell) * cell
+            a = rng.uniform(*g["aspect_ratio"])
+            height = min(round(a * length / s) * s, float(g["max_height_m"]))
+            phi = round(float(rng.uniform(*g["friction_angle_deg"])), 2)
+            if split == "test":  # alternate: a held-out aspect ratio, a held-out friction
+                if sum(p.split == "test" for p in plans) % 2 == 0:
+                    a = rng.uniform(*held_a[0])
+                else:
+                    phi = round(float(rng.uniform(*held_phi[0])), 2)
+                height = min(round(a * length / s) * s, float(g["max_height_m"]))
+            a_real = height / length
+            held = _in_bands(a_real, held_a) or _in_bands(phi, held_phi)
+            if held != (split == "test"):
+                continue
+            n = _count(length, width, height, s)
+            if not g["particles"][0] <= n <= g["particles"][1]:
+                continue
+            i = sum(p.split == split for p in plans)
+            plans.append(ScenePlan(f"{split}_{i:03d}", split, round(length, 6), round(width, 6),
+                                   round(height, 6), phi, float(g["domain_length_m"]), n))
+    for named in cfg.named:
+        plans.append(ScenePlan(
+            named["name"], "test", float(named["length_m"]), float(named["width_m"]),
+            float(named["height_m"]), float(named["friction_angle_deg"]),
+            float(named.get("domain_length_m", g["domain_length_m"])),
+            _count(named["length_m"], named["width_m"], named["height_m"], s)))
+    return plans
+
+
+def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:
+    return cfg.template.format(
+        name=p.name, domain_length_m=p.domain_length_m, width_m=p.width_m,
+        friction_angle_deg=p.friction_angle_deg, length_m=p.length_m, height_m=p.height_m,
+        duration_s=cfg.duration_s, output_interval_s=cfg.output_interval_s)
+
+
+def complete(h5_path: Path, duration_s: float, interval_s: float) -> bool:
+    """True if h5_path holds every frame of a finished run."""
+    want = int(math.floor(duration_s / interval_s + 1e-9)) + 1
+    try:
+        with h5py.File(h5_path, "r") as f:
+            return len(f["time"]) >= want
+    except (OSError, KeyError):
+        return False
+
+
+def run_sweep(cfg: SweepConfig, out_dir: str | Path, *, jobs: int = 1, threads: int = 1,
+              log=sys.stderr) -> list[tuple[ScenePlan, Path]]:
+    """Run every planned scene not already complete in out_dir; return (plan, HDF5 path)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plans = plan(cfg)
+    todo = []
+    for p in plans:
+        (out / f"{p.name}.toml").write_text(scene_toml(cfg, p))
+        if not complete(out / f"{p.name}.h5", cfg.duration_s, cfg.output_interval_s):
+            todo.append(p)
+    print(f"sweep: {len(plans)} scenes, {len(plans) - len(todo)} already done, running "
+          f"{len(todo)} ({jobs} at a time, {threads} thread(s) each) in {out}", file=log,
+          flush=True)
+    env = dict(os.environ, NUMBA_NUM_THREADS=str(threads))
+    t0, done = time.perf_counter(), 0
+
+    def run_one(p: ScenePlan) -> None:
+        cmd = [sys.executable, "-m", "minority", "sim", str(out / f"{p.name}.toml"),
+               "--out", str(out / f"{p.name}.h5"), "--threads", str(threads), "-q"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if proc.returncode != 0:
+            raise SweepError(f"scene {p.name} failed: {proc.stderr.strip()[-500:]}")
+
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        for p, _ in zip(todo, pool.map(run_one, todo), strict=False):
+            done += 1
+            print(f"sweep: {done}/{len(todo)} {p.name} ({p.particles} particles, a = "
+                  f"{p.aspect_ratio:.2f}, phi = {p.friction_angle_deg:.1f} deg) "
+                  f"{time.perf_counter() - t0:.0f} s", file=log, flush=True)
+    return [(p, out / f"{p.name}.h5") for p in plans]
+
+
+def plans_table(plans: list[ScenePlan]) -> list[dict]:
+    return [asdict(p) | {"aspect_ratio": round(p.aspect_ratio, 4)} for p in plans]

@@ -1,0 +1,183 @@
+"""Training: random-walk noise on the input velocities, normalized acceleration loss,
+exponential learning-rate decay, validation rollouts, checkpoints with resume.
+
+A checkpoint is a dict of tensors and plain values (loads with `weights_only=True`):
+format, model_config, stats (normalization, radius, frame interval, bounds), state_dict,
+optimizer (absent in a shipped checkpoint), step, train_config, history.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gns.dataset import load_metadata, load_split
+from gns.graph import radius_graph
+from gns.model import GNS, ModelConfig
+
+CHECKPOINT_FORMAT = "minority-gns-checkpoint/1"
+STAT_KEYS = ("vel_mean", "vel_std", "acc_mean", "acc_std", "friction_mean_deg",
+             "friction_std_deg", "connectivity_radius_m", "frame_interval_s", "bounds_m",
+             "particle_spacing_m", "input_velocities")
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 100_000
+    batch: int = 2  # trajectory windows per step (disjoint graphs)
+    lr: float = 1e-3
+    lr_final: float = 1e-5
+    lr_decay_steps: int = 100_000  # lr = lr_final + (lr - lr_final) * 0.1 ** (step / this)
+    noise_std: float = 3e-5  # m/frame, std of the input velocity noise at the last frame
+    val_every: int = 2_000  # steps between validation rollouts
+    val_frames: int = 100  # rollout length of a validation rollout
+    ckpt_every: int = 500
+    seed: int = 0
+
+
+def combined_stats(meta: dict, noise_std: float) -> dict:
+    """Metadata statistics with the noise folded into the stds (as learning_to_simulate)."""
+    stats = {k: meta[k] for k in STAT_KEYS}
+    for key in ("vel_std", "acc_std"):
+        stats[key] = [math.sqrt(s * s + noise_std * noise_std) for s in meta[key]]
+    return stats
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[GNS, dict]:
+    ckpt = torch.load(path, map_location=device, weights_only=True)
+    if ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a {CHECKPOINT_FORMAT} checkpoint")
+    model = GNS(ModelConfig(**ckpt["model_config"]), ckpt["stats"]).to(device)
+    model.load_state_dict(ckpt["state_dict"])
+    return model.eval(), ckpt
+
+
+class Sampler:
+    """Random training windows: C+1 input frames and the next frame, with noise."""
+
+    def __init__(self, trajs, c: int, noise_std: float, rng: np.random.Generator) -> None:
+        self.trajs, self.c, self.noise, self.rng = trajs, c, noise_std, rng
+        self.weights = np.array([t.positions.shape[0] - c - 1 for t in trajs], np.float64)
+        self.weights /= self.weights.sum()
+
+    def window(self, radius: float):
+        t = self.trajs[self.rng.choice(len(self.trajs), p=self.weights)]
+        k = int(self.rng.integers(self.c, t.positions.shape[0] - 1))  # last input frame
+        pos = t.positions[k - self.c:k + 2].astype(np.float64)  # [C+2, n, 3]
+        n = pos.shape[1]
+        vel_noise = self.rng.normal(0.0, self.noise / math.sqrt(self.c), (self.c, n, 3))
+        pos_noise = np.concatenate([np.zeros((1, n, 3)), np.cumsum(np.cumsum(
+            vel_noise, axis=0), axis=0)])  # random walk: none on the oldest frame
+        inputs = pos[:-1] + pos_noise
+        target = pos[-1] + pos_noise[-1]  # keep the true velocity of the last step
+        senders, receivers = radius_graph(inputs[-1], radius)
+        return (np.transpose(inputs, (1, 0, 2)), target, np.full(n, t.friction_angle_deg),
+                t.bounds_m, senders, receivers)
+
+
+def _batch(windows, device):
+    pos, tgt, fr, _b, s, r, bounds = [], [], [], [], [], [], []
+    off = 0
+    for inputs, target, friction, bnd, snd, rcv in windows:
+        pos.append(inputs)
+        tgt.append(target)
+        fr.append(friction)
+        bounds.append(np.broadcast_to(bnd, (len(friction), 3, 2)))
+        s.append(snd + off)
+        r.append(rcv + off)
+        off += len(friction)
+    t = lambda a, dt=torch.float32: torch.as_tensor(np.concatenate(a), dtype=dt, device=device)  # noqa: E731
+    return t(pos), t(tgt), t(fr), t(bounds), t(s, torch.int64), t(r, torch.int64)
+
+
+def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: TrainConfig, *,
+          resume: str | Path | None = None, device: str | None = None, log=sys.stderr) -> Path:
+    """Train; write out (the latest checkpoint) and out with suffix .best.pt (best val)."""
+    from gns.rollout import rollout_error
+    from gns.runtime import tune_allocator
+
+    tune_allocator()
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    meta = load_metadata(dataset)
+    train_trajs, val_trajs = load_split(dataset, "train"), load_split(dataset, "valid")
+    stats = combined_stats(meta, cfg.noise_std)
+    step, history = 0, []
+    model = GNS(model_config, stats).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    if resume:
+        ckpt = torch.load(resume, map_location=device, weights_only=True)
+        model = GNS(ModelConfig(**ckpt["model_config"]), ckpt["stats"]).to(device)
+        model.load_state_dict(ckpt["state_dict"])
+        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+        if "optimizer" in ckpt:
+            opt.load_state_dict(ckpt["optimizer"])
+        step, history = int(ckpt["step"]), list(ckpt.get("history", []))
+        stats, model_config = ckpt["stats"], model.config
+        print(f"train: resumed {resume} at step {step}", file=log, flush=True)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(cfg.seed + step)
+    sampler = Sampler(train_trajs, model_config.input_velocities, cfg.noise_std, rng)
+    acc_mean = torch.as_tensor(stats["acc_mean"], device=device)
+    acc_std = torch.as_tensor(stats["acc_std"], device=device)
+    best = min((h["val_error_m"] for h in history if "val_error_m" in h), default=math.inf)
+    n_params = sum(p.numel() for p in model.parameters())
+    print(f"train: {len(train_trajs)} train / {len(val_trajs)} valid scenes, model "
+          f"{asdict(model_config)} ({n_params} parameters), {device}, "
+          f"{torch.get_num_threads()} threads", file=log, flush=True)
+
+    def save(path: Path) -> None:
+        torch.save({"format": CHECKPOINT_FORMAT, "model_config": model_config.to_dict(),
+                    "stats": stats, "state_dict": model.state_dict(),
+                    "optimizer": opt.state_dict(), "step": step, "train_config": asdict(cfg),
+                    "history": history}, path.with_suffix(".tmp"))
+        path.with_suffix(".tmp").replace(path)
+
+    t0, t_last, loss_acc, n_acc = time.perf_counter(), time.perf_counter(), 0.0, 0
+    model.train()
+    while step < cfg.steps:
+        lr = cfg.lr_final + (cfg.lr - cfg.lr_final) * 0.1 ** (step / cfg.lr_decay_steps)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        pos, tgt, fr, bounds, s, r = _batch(
+            [sampler.window(model.radius) for _ in range(cfg.batch)], device)
+        last, prev = pos[:, -1], pos[:, -2]
+        acc_target = ((tgt - 2 * last + prev) - acc_mean) / acc_std
+        pred = model(pos, fr, bounds, s, r)
+        loss = ((pred - acc_target) ** 2).sum(dim=1).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        loss_acc += loss.detach().item()
+        n_acc += 1
+        now = time.perf_counter()
+        if now - t_last > 10 or step == cfg.steps:
+            rate = step / max(now - t0, 1e-9) if not resume else n_acc / max(now - t_last, 1e-9)
+            print(f"train: step {step}/{cfg.steps} loss {loss_acc / n_acc:.4f} lr {lr:.2e} "
+                  f"{rate:.2f} steps/s", file=log, flush=True)
+            history.append({"step": step, "loss": loss_acc / n_acc, "lr": lr,
+                            "wall_s": now - t0})
+            t_last, loss_acc, n_acc = now, 0.0, 0
+        if step % cfg.ckpt_every == 0 or step == cfg.steps:
+            save(out)
+        if val_trajs and (step % cfg.val_every == 0 or step == cfg.steps):
+            model.eval()
+            err = float(np.mean([rollout_error(model, t, cfg.val_frames, device)
+                                 for t in val_trajs]))
+            model.train()
+            history.append({"step": step, "val_error_m": err})
+            print(f"train: step {step} validation rollout mean position error {err:.5f} m",
+                  file=log, flush=True)
+            if err < best:
+                best = err
+                save(out.with_suffix(".best.pt"))
+    save(out)
+    return out
+

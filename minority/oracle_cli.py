@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+
+DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
 
 
 def _not_built(name: str):
@@ -13,10 +16,167 @@ def _not_built(name: str):
     return run
 
 
+def _cmd_dataset(args: argparse.Namespace) -> int:
+    from gns.dataset import DatasetError, build
+    from gns.sweep import SweepError, load_config, run_sweep
+
+    try:
+        cfg = load_config(args.config)
+        runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
+        meta = build(runs, args.out, stride=cfg.stride,
+                     connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config))
+    except (SweepError, DatasetError, OSError) as exc:
+        print(f"minority oracle dataset: error: {exc}", file=sys.stderr)
+        return 1
+    counts = {s: sum(sc["split"] == s for sc in meta["scenes"]) for s in ("train", "valid", "test")}
+    print(f"dataset {args.out}: {counts}, frame interval {meta['frame_interval_s']} s, "
+          f"radius {meta['connectivity_radius_m']} m", file=sys.stderr)
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from gns.dataset import DatasetError
+    from gns.model import ModelConfig
+    from gns.train import TrainConfig, train
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    mc = ModelConfig(latent=args.latent, mlp_layers=args.mlp_layers,
+                     message_passing=args.message_passing)
+    tc = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, lr_final=args.lr_final,
+                     lr_decay_steps=args.lr_decay_steps, noise_std=args.noise_std,
+                     val_every=args.val_every, val_frames=args.val_frames,
+                     ckpt_every=args.ckpt_every, seed=args.seed)
+    try:
+        out = train(args.dataset, args.out, mc, tc, resume=args.resume, device=args.device)
+    except (DatasetError, OSError, ValueError) as exc:
+        print(f"minority oracle train: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"checkpoint {out}", file=sys.stderr)
+    return 0
+
+
+def scene_path(name: str) -> Path:
+    """A scene TOML path, or the shipped scene of that name."""
+    path = Path(name)
+    if path.exists() or path.suffix:
+        return path
+    from sim.scene import builtin_scene_path
+    return builtin_scene_path(name)
+
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    import time
+    import tomllib
+
+    import torch
+
+    from gns.export import write_hdf5, write_vtk_series
+    from gns.rollout import RolloutError, initial_state, rollout
+    from gns.runtime import tune_allocator
+    from gns.train import load_checkpoint
+
+    tune_allocator()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        model, ckpt = load_checkpoint(args.checkpoint, args.device)
+        st = ckpt["stats"]
+        path = scene_path(args.scene)
+        init = initial_state(path, st["particle_spacing_m"], st["frame_interval_s"],
+                             model.config.input_velocities)
+        duration = args.duration or float(tomllib.loads(path.read_text())["time"]["duration_s"])
+        frames = max(1, round(duration / st["frame_interval_s"]))
+        n = init.positions.shape[1]
+        print(f"rollout: {init.name}, {n} particles at {st['particle_spacing_m']} m, "
+              f"{frames} frames of {st['frame_interval_s']} s", file=sys.stderr)
+        t0 = time.perf_counter()
+        pos, timing = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
+                              device=args.device, spacing_m=st["particle_spacing_m"],
+                              progress=True)
+        wall = time.perf_counter() - t0
+        pos = pos[model.config.input_velocities:]  # the history is the resting state: t = 0
+        h5 = write_hdf5(args.out / "rollout.h5", pos, st["frame_interval_s"], attrs={
+            "scene": str(path), "checkpoint": str(args.checkpoint),
+            "friction_angle_deg": init.friction_deg, "bounds_m": init.bounds_m,
+            "particle_spacing_m": st["particle_spacing_m"], "wall_s": wall})
+        if args.vtk_every:
+            write_vtk_series(args.out / "vtk", pos, st["frame_interval_s"],
+                             every=args.vtk_every)
+    except (RolloutError, ValueError, OSError, KeyError) as exc:
+        print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"rollout: {frames} frames in {wall:.1f} s (graph {timing['graph_s']:.1f} s, model "
+          f"{timing['model_s']:.1f} s) -> {h5}", file=sys.stderr)
+    return 0
+
+
 def add_oracle_parser(sub) -> None:
     p = sub.add_parser("oracle", help="GNS surrogate: dataset, train, rollout, spec",
                        description="Build the GNS training set from MPM runs, train the "
                                    "surrogate, roll it out on a scene, derive oracle specs.")
     osub = p.add_subparsers(dest="oracle_command", required=True, metavar="STEP")
-    q = osub.add_parser("dataset", help="run the MPM sweep of a config and build the dataset")
-    q.set_defaults(func=_not_built("dataset"))
+
+    q = osub.add_parser("dataset", help="run the MPM sweep of a config and build the dataset",
+                        description="Plan column-collapse scenes from the config's ranges (train "
+                                    "/ valid / test by scene, held-out aspect ratios and "
+                                    "friction angles in test), run each with `minority sim` "
+                                    "(finished runs are kept and skipped), pack the dataset.")
+    q.add_argument("--config", type=Path, default=DEFAULT_SWEEP,
+                   help="sweep config TOML (default: gns/configs/column_sweep.toml)")
+    q.add_argument("--runs", type=Path, default=Path("data/sweep"), metavar="DIR",
+                   help="where the MPM runs go (default: data/sweep)")
+    q.add_argument("--out", type=Path, default=Path("data/dataset"), metavar="DIR",
+                   help="dataset directory (default: data/dataset)")
+    q.add_argument("--jobs", type=int, default=1, help="sims run at once (default 1)")
+    q.add_argument("--threads", type=int, default=1, help="numba threads per sim (default 1)")
+    q.set_defaults(func=_cmd_dataset)
+
+    q = osub.add_parser("train", help="train the GNS on a dataset",
+                        description="Train with random-walk input noise and a normalized "
+                                    "acceleration loss; writes OUT every --ckpt-every steps "
+                                    "and OUT with suffix .best.pt at the best validation "
+                                    "rollout. Uses a GPU when present.")
+    q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
+    q.add_argument("--out", type=Path, default=Path("data/gns.pt"), help="checkpoint file")
+    q.add_argument("--resume", type=Path, help="continue from this checkpoint (its model "
+                                               "config and statistics win)")
+    q.add_argument("--latent", type=int, default=128, help="latent size (default 128)")
+    q.add_argument("--mlp-layers", type=int, default=2, help="hidden layers per MLP (default 2)")
+    q.add_argument("--message-passing", type=int, default=10, metavar="M",
+                   help="message-passing steps (default 10)")
+    q.add_argument("--steps", type=int, default=100_000, help="total training steps")
+    q.add_argument("--batch", type=int, default=2, help="windows per step (default 2)")
+    q.add_argument("--lr", type=float, default=1e-3, help="initial learning rate")
+    q.add_argument("--lr-final", type=float, default=1e-5, help="learning-rate floor")
+    q.add_argument("--lr-decay-steps", type=int, default=100_000,
+                   help="steps per tenfold learning-rate decay")
+    q.add_argument("--noise-std", type=float, default=3e-5, metavar="M_PER_FRAME",
+                   help="input velocity noise std, m/frame (default 3e-5)")
+    q.add_argument("--val-every", type=int, default=2000, help="steps between validations")
+    q.add_argument("--val-frames", type=int, default=100, help="frames per validation rollout")
+    q.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    q.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    q.set_defaults(func=_cmd_train)
+
+    q = osub.add_parser("rollout", help="predict a scene with a checkpoint",
+                        description="Seed the scene's bodies at the model's particle spacing "
+                                    "(any scene resolution), predict its duration frame by "
+                                    "frame, write DIR/rollout.h5 (positions m, velocities m/s "
+                                    "per frame) and DIR/vtk/rollout.pvd with one .vtp per "
+                                    "frame (displacement and velocity arrays) for ParaView.")
+    q.add_argument("checkpoint", type=Path, help="checkpoint from minority oracle train")
+    q.add_argument("scene", help="scene TOML file or shipped scene name (e.g. column_13k)")
+    q.add_argument("--out", type=Path, default=Path("rollout"), metavar="DIR",
+                   help="output directory (default: rollout)")
+    q.add_argument("--duration", type=float, metavar="S",
+                   help="simulated time to predict, s (default: the scene's duration)")
+    q.add_argument("--vtk-every", type=int, default=1, metavar="K",
+                   help="write every K-th frame to the VTK series (default 1; 0: none)")
+    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    q.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    q.set_defaults(func=_cmd_rollout)

@@ -1,0 +1,135 @@
+"""Rollout: the GNS predicts a run frame by frame from its first C+1 frames.
+
+A rollout stops with `RolloutError` naming the frame when positions turn non-finite or a
+particle leaves the domain by more than `DOMAIN_TOLERANCE` particle spacings.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gns.graph import radius_graph
+
+DOMAIN_TOLERANCE = 0.5  # particle spacings outside the domain that count as leaving it
+
+
+class RolloutError(RuntimeError):
+    """The rollout diverged; the message names the frame."""
+
+
+@dataclass
+class InitialState:
+    positions: np.ndarray  # [C+1, n, 3] float64, m (oldest first)
+    friction_deg: float
+    bounds_m: np.ndarray  # [3, 2]
+    name: str
+
+
+def _lattice(lo, hi, s: float) -> np.ndarray:
+    """Points (i + 1/2) s inside [lo, hi] per axis, [m, 3] (the MPM seeding lattice)."""
+    axes = []
+    for a in range(3):
+        c = (np.arange(int(np.floor(lo[a] / s + 1e-9)), int(np.ceil(hi[a] / s - 1e-9))) + 0.5) * s
+        axes.append(c[(c >= lo[a]) & (c <= hi[a])])
+    return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
+
+
+def initial_state(scene_toml: str | Path, spacing_m: float, frame_interval_s: float,
+                  history: int) -> InitialState:
+    """Seed a scene's bodies (TOML as `minority sim` reads it) at the model's particle
+    spacing; the history frames move back along each body's initial velocity."""
+    path = Path(scene_toml)
+    try:
+        raw = tomllib.loads(path.read_text())
+        size = np.array(raw["domain"]["size_m"], np.float64)
+        friction = float(raw["material"]["friction_angle_deg"])
+        bodies = raw["body"]
+    except (OSError, tomllib.TOMLDecodeError, KeyError) as exc:
+        raise ValueError(f"{path}: cannot read the scene ({exc!r})") from None
+    pts, vel, taken = [], [], set()
+    for b in bodies:
+        if b.get("shape", "box") == "box":
+            p = _lattice(b["lo_m"], b["hi_m"], spacing_m)
+        else:
+            c, r = np.array(b["center_m"], np.float64), float(b["radius_m"])
+            p = _lattice(c - [r, r, 0.0], c + [r, r, float(b["height_m"])], spacing_m)
+            p = p[(p[:, 0] - c[0]) ** 2 + (p[:, 1] - c[1]) ** 2 <= r * r]
+        keys = [tuple(k) for k in np.rint(p / spacing_m - 0.5).astype(np.int64)]
+        keep = np.array([k not in taken for k in keys], bool)
+        taken.update(k for k, ok in zip(keys, keep, strict=False) if ok)
+        pts.append(p[keep])
+        vel.append(np.broadcast_to(np.array(b.get("velocity_m_s", [0.0, 0.0, 0.0])), p[keep].shape))
+    x, v = np.concatenate(pts), np.concatenate(vel) * frame_interval_s
+    if len(x) == 0:
+        raise ValueError(f"{path}: no particles at spacing {spacing_m} m")
+    frames = np.stack([x - (history - k) * v for k in range(history + 1)])
+    bounds = np.stack([np.zeros(3), size], axis=1)
+    return InitialState(frames, friction, bounds, raw.get("name", path.stem))
+
+
+def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
+            frames: int, *, device: str = "cpu", spacing_m: float | None = None,
+            progress: bool = False, log=sys.stderr) -> tuple[np.ndarray, dict]:
+    """Predict `frames` frames after the C+1 given ones ([C+1, n, 3], m).
+
+    Returns all frames [C+1+frames, n, 3] float32 and timing {graph_s, model_s}."""
+    c1 = model.config.input_velocities + 1
+    if positions.shape[0] < c1:
+        raise ValueError(f"rollout needs {c1} initial frames, got {positions.shape[0]}")
+    n = positions.shape[1]
+    out = np.empty((c1 + frames, n, 3), np.float32)
+    out[:c1] = positions[-c1:]
+    window = torch.as_tensor(np.transpose(positions[-c1:], (1, 0, 2)), dtype=torch.float32,
+                             device=device)
+    fr = torch.full((n,), float(friction_deg), device=device)
+    bounds = torch.as_tensor(bounds_m, dtype=torch.float32, device=device)
+    lo, hi = np.asarray(bounds_m)[:, 0], np.asarray(bounds_m)[:, 1]
+    tol = DOMAIN_TOLERANCE * (spacing_m or 0.0)
+    timing = {"graph_s": 0.0, "model_s": 0.0}
+    t_print = time.perf_counter()
+    with torch.no_grad():
+        for k in range(frames):
+            t0 = time.perf_counter()
+            last = window[:, -1].cpu().numpy()
+            s, r = radius_graph(last, model.radius)
+            s_t = torch.as_tensor(s, device=device)
+            r_t = torch.as_tensor(r, device=device)
+            t1 = time.perf_counter()
+            nxt = model.next_positions(window, fr, bounds, s_t, r_t)
+            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+            x = nxt.cpu().numpy()
+            timing["graph_s"] += t1 - t0
+            timing["model_s"] += time.perf_counter() - t1
+            frame = c1 + k
+            if not np.isfinite(x).all():
+                raise RolloutError(f"rollout diverged at frame {frame}: non-finite positions")
+            out_lo, out_hi = (x < lo - tol).any(axis=1), (x > hi + tol).any(axis=1)
+            if out_lo.any() or out_hi.any():
+                i = int(np.flatnonzero(out_lo | out_hi)[0])
+                raise RolloutError(f"rollout diverged at frame {frame}: particle {i} left the "
+                                   f"domain at {x[i].round(4).tolist()} m")
+            out[frame] = x
+            if progress and time.perf_counter() - t_print > 2.0:
+                print(f"rollout: frame {frame}/{c1 + frames - 1}", file=log, flush=True)
+                t_print = time.perf_counter()
+    return out, timing
+
+
+def rollout_error(model, traj, frames: int, device: str = "cpu") -> float:
+    """Mean position error (m) over a rollout of `frames` frames against the trajectory."""
+    c1 = model.config.input_velocities + 1
+    frames = min(frames, traj.positions.shape[0] - c1)
+    try:
+        pred, _ = rollout(model, traj.positions[:c1].astype(np.float64), traj.friction_angle_deg,
+                          traj.bounds_m, frames, device=device)
+    except RolloutError:
+        return float("inf")
+    true = traj.positions[:c1 + frames]
+    return float(np.linalg.norm(pred - true, axis=2).mean())

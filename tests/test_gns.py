@@ -1,0 +1,217 @@
+"""GNS: sweep planning, dataset packing, model, training, rollout, export."""
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from gns.dataset import build, load_metadata, load_split
+from gns.export import write_vtk_series
+from gns.model import GNS, ModelConfig
+from gns.rollout import RolloutError, initial_state, rollout
+from gns.sweep import ScenePlan, load_config, plan
+from gns.train import TrainConfig, load_checkpoint, train
+
+SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
+
+
+def test_sweep_plan_holds_out_bands_and_is_deterministic():
+    cfg = load_config(SWEEP)
+    a, b = plan(cfg), plan(cfg)
+    assert a == b
+    held_a = cfg.splits["held_out_aspect_ratio"]
+    held_phi = cfg.splits["held_out_friction_angle_deg"]
+
+    def held(p):
+        return (any(lo <= p.aspect_ratio <= hi for lo, hi in held_a)
+                or any(lo <= p.friction_angle_deg <= hi for lo, hi in held_phi))
+
+    for p in a:
+        if p.split in ("train", "valid"):
+            assert not held(p), p
+        elif not p.name.startswith(("showcase", "wide")):
+            assert held(p), p
+        lo, hi = cfg.geometry["particles"]
+        assert p.name.startswith("wide") or lo <= p.particles <= hi
+    assert sum(p.split == "train" for p in a) == cfg.splits["train"]
+    assert any(any(lo <= p.aspect_ratio <= hi for lo, hi in held_a)
+               for p in a if p.split == "test")
+
+
+def _fake_run(path: Path, rng, n=60, frames=30, phi=30.0, size=(0.4, 0.1, 0.2)):
+    """A trajectory in `minority sim`'s HDF5 layout: particles falling and drifting."""
+    x0 = rng.uniform(0.05, 0.09, (n, 3))
+    t = np.arange(frames) * 0.0025
+    pos = x0[None] + np.stack([0.2 * t, 0 * t, -0.5 * 9.81 * t * t], 1)[:, None, :] * 0.1
+    with h5py.File(path, "w") as f:
+        f["positions"] = pos.astype(np.float32)
+        f["time"] = t
+        f["material"] = np.full(n, phi, np.float32)
+        f.attrs["output_interval_s"] = 0.0025
+        f.attrs["bounds_m"] = np.array([[0.0, s] for s in size])
+        f.attrs["particle_spacing_m"] = 0.016
+        f.attrs["scene_name"] = path.stem
+    return pos
+
+
+def _plan(name, split, phi=30.0):
+    return ScenePlan(name, split, 0.1, 0.1, 0.1, phi, 0.4, 60)
+
+
+@pytest.fixture
+def dataset(tmp_path):
+    rng = np.random.default_rng(0)
+    runs, raw = [], []
+    for i, (split, phi) in enumerate([("train", 28.0), ("train", 34.0), ("valid", 30.0),
+                                      ("test", 35.0)]):
+        p = tmp_path / f"r{i}.h5"
+        raw.append((split, _fake_run(p, rng, phi=phi)))
+        runs.append((_plan(f"{split}_{i}", split, phi), p))
+    meta = build(runs, tmp_path / "ds", stride=2, connectivity_radius_m=0.029)
+    return tmp_path / "ds", meta, raw
+
+
+def test_dataset_metadata_and_stats(dataset):
+    path, meta, raw = dataset
+    assert load_metadata(path) == json.loads(json.dumps(meta))
+    assert meta["frame_interval_s"] == pytest.approx(0.005)
+    assert meta["connectivity_radius_m"] == 0.029 and meta["dim"] == 3
+    train_pos = [p[::2].astype(np.float32).astype(np.float64) for s, p in raw if s == "train"]
+    v = np.concatenate([np.diff(p, axis=0).reshape(-1, 3) for p in train_pos])
+    a = np.concatenate([np.diff(p, 2, axis=0).reshape(-1, 3) for p in train_pos])
+    np.testing.assert_allclose(meta["vel_mean"], v.mean(0), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(meta["vel_std"], v.std(0), rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(meta["acc_std"], a.std(0), rtol=1e-3, atol=1e-9)
+    assert meta["friction_mean_deg"] == pytest.approx(31.0)
+    assert [t.name for t in load_split(path, "test")] == ["test_3"]
+    assert {s["split"] for s in meta["scenes"]} == {"train", "valid", "test"}
+
+
+def _stats():
+    return {"vel_mean": [0.0] * 3, "vel_std": [1e-3] * 3, "acc_mean": [0.0] * 3,
+            "acc_std": [1e-4] * 3, "friction_mean_deg": 30.0, "friction_std_deg": 5.0,
+            "connectivity_radius_m": 0.03, "frame_interval_s": 0.005,
+            "bounds_m": [[0, 1], [0, 1], [0, 1]], "particle_spacing_m": 0.016,
+            "input_velocities": 5}
+
+
+def _inputs(n=50, seed=0):
+    from gns.graph import radius_graph
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.2, 0.3, (n, 3))
+    pos = x[:, None, :] + np.cumsum(rng.normal(0, 1e-3, (n, 6, 3)), axis=1)
+    s, r = radius_graph(pos[:, -1], 0.03)
+    return (torch.tensor(pos, dtype=torch.float32), torch.full((n,), 31.0),
+            torch.tensor([[0.0, 1], [0, 1], [0, 1]]), torch.tensor(s), torch.tensor(r))
+
+
+def test_model_is_permutation_equivariant():
+    torch.manual_seed(0)
+    model = GNS(ModelConfig(latent=16, message_passing=2), _stats()).eval()
+    pos, fr, b, s, r = _inputs()
+    perm = torch.randperm(pos.shape[0])
+    inv = torch.argsort(perm)
+    with torch.no_grad():
+        out = model(pos, fr, b, s, r)
+        out_p = model(pos[perm], fr[perm], b, inv[s], inv[r])
+    torch.testing.assert_close(out_p, out[perm], rtol=1e-4, atol=1e-5)
+    assert out.shape == (pos.shape[0], 3)
+
+
+def test_split_first_layer_equals_concatenated_mlp():
+    torch.manual_seed(1)
+    model = GNS(ModelConfig(latent=8, message_passing=1), _stats())
+    blk = model.processor[0]
+    h, e = torch.randn(20, 8), torch.randn(40, 8)
+    s, r = torch.randint(0, 20, (40,)), torch.randint(0, 20, (40,))
+    f = blk.edge.first
+    w = torch.cat([f[0].weight, f[1].weight, f[2].weight], dim=1)
+    cat = torch.cat([e, h[s], h[r]], dim=1) @ w.T + f[0].bias
+    e_ref = blk.edge.rest(torch.relu(cat))
+    agg = torch.zeros(20, 8).index_add_(0, r, e_ref)
+    g = blk.node.first
+    h_ref = blk.node.rest(torch.relu(torch.cat([h, agg], 1) @ torch.cat(
+        [g[0].weight, g[1].weight], 1).T + g[0].bias))
+    h_new, e_new = blk(h, e, s, r)
+    torch.testing.assert_close(e_new, e + e_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(h_new, h + h_ref, rtol=1e-5, atol=1e-5)
+
+
+def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
+    path, meta, _ = dataset
+    out = tmp_path / "m.pt"
+    tc = TrainConfig(steps=6, batch=2, val_every=3, val_frames=5, ckpt_every=3)
+    mc = ModelConfig(latent=16, message_passing=2)
+    train(path, out, mc, tc, device="cpu")
+    model, ckpt = load_checkpoint(out)  # weights_only=True inside
+    assert ckpt["step"] == 6 and ckpt["model_config"] == mc.to_dict()
+    assert ckpt["stats"]["acc_std"][0] == pytest.approx(
+        math.hypot(meta["acc_std"][0], tc.noise_std))
+    assert any("val_error_m" in h for h in ckpt["history"])
+    assert (tmp_path / "m.best.pt").exists()
+    train(path, out, mc, replace(tc, steps=9), resume=out, device="cpu")
+    model2, ckpt2 = load_checkpoint(out)
+    assert ckpt2["step"] == 9
+    traj = load_split(path, "valid")[0]
+    pred, timing = rollout(model2, traj.positions[:6].astype(np.float64),
+                           traj.friction_angle_deg, traj.bounds_m, 4)
+    assert pred.shape == (10, traj.positions.shape[1], 3) and np.isfinite(pred).all()
+    np.testing.assert_array_equal(pred[:6], traj.positions[:6])
+    assert timing["model_s"] > 0
+
+
+def test_rollout_divergence_names_the_frame():
+    torch.manual_seed(0)
+    stats = _stats()
+    model = GNS(ModelConfig(latent=8, message_passing=1), stats).eval()
+    with torch.no_grad():
+        model.decoder[-1].bias.fill_(0.0)
+        model.decoder[-1].weight.fill_(0.0)
+        model.decoder[-1].bias[2] = -200.0  # -0.02 m/frame^2: falls through the floor
+    pos = _inputs()[0].numpy().transpose(1, 0, 2).astype(np.float64)
+    bounds = np.array([[0.0, 1], [0, 1], [0, 1]])
+    with pytest.raises(RolloutError, match=r"diverged at frame \d+: particle \d+ left the domain"):
+        rollout(model, pos, 30.0, bounds, 50, spacing_m=0.016)
+    with torch.no_grad():
+        model.decoder[-1].bias[2] = float("nan")
+    with pytest.raises(RolloutError, match="diverged at frame 6: non-finite"):
+        rollout(model, pos, 30.0, bounds, 5, spacing_m=0.016)
+
+
+def test_initial_state_matches_the_mpm_seeding():
+    from sim.scene import builtin_scene_path, load_scene
+    from sim.state import seed_particles
+
+    path = builtin_scene_path("tiny")
+    scene = load_scene(path)
+    init = initial_state(path, scene.particle_spacing_m, 0.005, 5)
+    x = seed_particles(scene).x
+    assert init.positions.shape == (6, len(x), 3)
+    np.testing.assert_allclose(init.positions[-1], x)
+    assert init.friction_deg == scene.material.friction_angle_deg
+    np.testing.assert_allclose(init.bounds_m[:, 1], scene.size_m)
+
+
+def test_vtk_series_opens_with_arrays(tmp_path):
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    rng = np.random.default_rng(0)
+    pos = np.cumsum(rng.normal(0, 1e-3, (4, 30, 3)), axis=0).astype(np.float32)
+    pvd = write_vtk_series(tmp_path, pos, 0.005)
+    text = pvd.read_text()
+    assert text.count("<DataSet") == 4 and 'timestep="0.015"' in text
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(tmp_path / "rollout_00003.vtp"))
+    reader.Update()
+    poly = reader.GetOutput()
+    assert poly.GetNumberOfPoints() == 30 and poly.GetNumberOfVerts() == 30
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    disp = vtk_to_numpy(poly.GetPointData().GetArray("displacement"))
+    np.testing.assert_allclose(disp, pos[3] - pos[0], atol=1e-7)
+    vel = vtk_to_numpy(poly.GetPointData().GetArray("velocity"))
+    np.testing.assert_allclose(vel, (pos[3] - pos[2]) / 0.005, rtol=1e-5, atol=1e-5)

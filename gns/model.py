@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+CHUNK_EDGES = 8192  # edges per block of the inference path ([8192, L] floats stay in cache)
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -63,6 +65,8 @@ class Processor(nn.Module):
         self.node = _SplitFirstMLP((latent, latent), latent, layers)
 
     def forward(self, h, e, senders, receivers):
+        if not torch.is_grad_enabled():
+            return self._forward_inference(h, e, senders, receivers)
         f = self.edge.first
         hs, hr = f[1](h), f[2](h)  # per-node halves of the first edge layer [n, L]
         pre = f[0](e) + hs.index_select(0, senders) + hr.index_select(0, receivers)
@@ -70,6 +74,31 @@ class Processor(nn.Module):
         agg = torch.zeros_like(h).index_add_(0, receivers, e_new)
         h_new = self.node(h, agg)
         return h + h_new, e + e_new
+
+    def _forward_inference(self, h, e, senders, receivers):
+        """The same update without autograd, in edge chunks that stay in cache: no [E, L]
+        intermediate is materialized and e is updated in place."""
+        f = self.edge.first
+        hs = f[1](h)
+        hr = torch.addmm(f[0].bias, h, f[2].weight.T)  # the first bias, added per node
+        lins = [m for m in self.edge.rest if isinstance(m, nn.Linear)]
+        norm = self.edge.rest[-1]
+        w0 = f[0].weight.T
+        agg = torch.zeros_like(h)
+        for a in range(0, e.shape[0], CHUNK_EDGES):
+            part = slice(a, a + CHUNK_EDGES)
+            x = torch.mm(e[part], w0)
+            x += hs.index_select(0, senders[part])
+            x += hr.index_select(0, receivers[part])
+            x.relu_()
+            for lin in lins[:-1]:
+                x = torch.addmm(lin.bias, x, lin.weight.T).relu_()
+            x = torch.addmm(lins[-1].bias, x, lins[-1].weight.T)
+            x = nn.functional.layer_norm(x, norm.normalized_shape, norm.weight, norm.bias,
+                                         norm.eps)
+            e[part] += x
+            agg.index_add_(0, receivers[part], x)
+        return h + self.node(h, agg), e
 
 
 class GNS(nn.Module):

@@ -7,6 +7,7 @@ import ctypes.util
 
 M_TRIM_THRESHOLD = -1  # mallopt parameters (glibc malloc.h)
 M_MMAP_THRESHOLD = -3
+M_MMAP_MAX = -4
 MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # glibc's largest mmap threshold on 64-bit, bytes
 TRIM_THRESHOLD = 1 << 30  # keep up to 1 GiB of freed heap instead of returning it
 
@@ -23,7 +24,8 @@ def tune_allocator() -> bool:
         return False
     try:
         libc = ctypes.CDLL(name)
-        return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX)) and bool(
-            libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+        return (bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX))
+                and bool(libc.mallopt(M_MMAP_MAX, 0))
+                and bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)))
     except (OSError, AttributeError):
         return False

@@ -111,6 +111,7 @@ class GNS(nn.Module):
         self.register_buffer("friction", torch.tensor(
             [stats["friction_mean_deg"], stats["friction_std_deg"]], dtype=torch.float32))
         self.radius = float(stats["connectivity_radius_m"])
+        self.spacing = float(stats.get("particle_spacing_m", 0.0))  # m, for domain checks
         self.node_in = 3 * c + 6 + 1
         self.node_encoder = _mlp(self.node_in, L, L, k, norm=True)
         self.edge_encoder = _mlp(4, L, L, k, norm=True)

@@ -79,7 +79,8 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
             progress: bool = False, log=sys.stderr) -> tuple[np.ndarray, dict]:
     """Predict `frames` frames after the C+1 given ones ([C+1, n, 3], m).
 
-    Returns all frames [C+1+frames, n, 3] float32 and timing {graph_s, model_s}."""
+    Returns all frames [C+1+frames, n, 3] float32 and timing {graph_s, model_s}.
+    spacing_m: particle spacing for the domain check (default: the model's training spacing)."""
     c1 = model.config.input_velocities + 1
     if positions.shape[0] < c1:
         raise ValueError(f"rollout needs {c1} initial frames, got {positions.shape[0]}")
@@ -91,7 +92,7 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
     fr = torch.full((n,), float(friction_deg), device=device)
     bounds = torch.as_tensor(bounds_m, dtype=torch.float32, device=device)
     lo, hi = np.asarray(bounds_m)[:, 0], np.asarray(bounds_m)[:, 1]
-    tol = DOMAIN_TOLERANCE * (spacing_m or 0.0)
+    tol = DOMAIN_TOLERANCE * (spacing_m if spacing_m is not None else model.spacing)
     timing = {"graph_s": 0.0, "model_s": 0.0}
     t_print = time.perf_counter()
     with torch.no_grad():

@@ -1,0 +1,150 @@
+"""Error against run time of the oracles that predict one target run.
+
+Target: the full MPM run of a scene (default column_13k, the showcase). Oracles: GNS
+checkpoints (model size, message-passing depth) rolled out on the scene at their particle
+spacing, and the MPM itself on the same column at coarser grids. Each is scored by the
+relative error of runout, final height and displacement range (gns/metrics.py) against the
+target. Prints a JSON line per oracle:
+{"bench": "surrogate", "oracle": .., "particles": N, "run_s": .., "runout_error": ..,
+ "height_error": .., "displacement_range_error": ..}
+and writes OUT/surrogate.md (table) and OUT/surrogate.png (error against run time).
+MPM runs go to OUT/ and are reused when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from gns.metrics import deposit, relative_errors
+from gns.rollout import initial_state, rollout
+from gns.runtime import tune_allocator
+from gns.train import load_checkpoint
+from sim.scene import builtin_scene_path, load_scene
+
+# coarse grids of the column_13k geometry: (cell m, particles per cell per axis); the domain is
+# rounded up to whole cells (the column and channel width are unchanged)
+COARSE = [(0.048, 2), (0.036, 2), (0.024, 2), (0.016, 1)]
+
+
+def coarse_scene(text: str, cell: float, ppc: int, size) -> str:
+    size = [float(np.ceil(s / cell - 1e-9) * cell) for s in size]
+    text = re.sub(r"(?m)^size_m = .*$", f"size_m = [{size[0]!r}, {size[1]!r}, {size[2]!r}]", text)
+    text = re.sub(r"(?m)^cell_size_m = .*$", f"cell_size_m = {cell!r}", text)
+    return re.sub(r"(?m)^per_cell_per_axis = .*$", f"per_cell_per_axis = {ppc}", text)
+
+
+def run_mpm(scene: Path, out: Path, threads: int) -> float:
+    """Run `minority sim` unless out is complete; wall seconds of the run (from the file)."""
+    if out.exists():
+        with h5py.File(out, "r") as f:
+            if "wall_s" in f.attrs:
+                return float(f.attrs["wall_s"])
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "minority", "sim", str(scene), "--out", str(out),
+                    "--threads", str(threads), "-q"], check=True)
+    wall = time.perf_counter() - t0
+    with h5py.File(out, "a") as f:
+        f.attrs["wall_s"] = wall
+    return wall
+
+
+def positions(path: Path) -> np.ndarray:
+    with h5py.File(path, "r") as f:
+        return f["positions"][: len(f["time"])]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("checkpoints", nargs="*", type=Path, help="GNS checkpoints")
+    ap.add_argument("--scene", default="column_13k")
+    ap.add_argument("--out", type=Path, default=Path("data/surrogate"))
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--no-mpm", action="store_true", help="skip the coarse MPM oracles")
+    args = ap.parse_args()
+    tune_allocator()
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    scene_path = builtin_scene_path(args.scene) if not Path(args.scene).exists() else Path(args.scene)
+    scene = load_scene(scene_path)
+    target_h5 = args.out / f"{scene.name}_target.h5"
+    target_s = run_mpm(scene_path, target_h5, args.threads)
+    ref = deposit(positions(target_h5))
+    rows = [{"oracle": f"target MPM dx={scene.cell_size_m}", "particles": positions(
+        target_h5).shape[1], "run_s": target_s, **{f"{k}_error": 0.0 for k in (
+            "runout", "height", "displacement_range")}}]
+    if not args.no_mpm:
+        text = scene_path.read_text()
+        for cell, ppc in COARSE:
+            p = args.out / f"{scene.name}_dx{cell}_ppc{ppc}.toml"
+            p.write_text(coarse_scene(text, cell, ppc, scene.size_m))
+            h5 = p.with_suffix(".h5")
+            wall = run_mpm(p, h5, args.threads)
+            pos = positions(h5)
+            err = relative_errors(deposit(pos), ref)
+            rows.append({"oracle": f"MPM dx={cell} ppc={ppc}", "particles": pos.shape[1],
+                         "run_s": wall, **{f"{k}_error": v for k, v in err.items()}})
+    for ck in args.checkpoints:
+        model, meta = load_checkpoint(ck)
+        st = meta["stats"]
+        init = initial_state(scene_path, st["particle_spacing_m"], st["frame_interval_s"],
+                             model.config.input_velocities)
+        frames = round(scene.duration_s / st["frame_interval_s"])
+        t0 = time.perf_counter()
+        pred, _ = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
+                          spacing_m=st["particle_spacing_m"])
+        wall = time.perf_counter() - t0
+        err = relative_errors(deposit(pred[model.config.input_velocities:]), ref)
+        c = model.config
+        rows.append({"oracle": f"GNS L{c.latent} M{c.message_passing} step {meta['step']}",
+                     "particles": pred.shape[1], "run_s": wall,
+                     **{f"{k}_error": v for k, v in err.items()}})
+    for r in rows:
+        print(json.dumps({"bench": "surrogate", **{k: round(v, 4) if isinstance(v, float) else v
+                                                   for k, v in r.items()}}), flush=True)
+    write_table(rows, args.out / "surrogate.md")
+    write_plot(rows, args.out / "surrogate.png")
+
+
+def write_table(rows: list[dict], path: Path) -> None:
+    lines = ["| oracle | particles | run time (s) | runout error | height error | "
+             "displacement range error |", "|---|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['oracle']} | {r['particles']} | {r['run_s']:.1f} | "
+              f"{100 * r['runout_error']:.1f}% | {100 * r['height_error']:.1f}% | "
+              f"{100 * r['displacement_range_error']:.1f}% |" for r in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for r in rows[1:]:
+        err = max(r["runout_error"], r["displacement_range_error"])
+        marker = "o" if r["oracle"].startswith("GNS") else "s"
+        ax.scatter(r["run_s"], 100 * err, marker=marker)
+        ax.annotate(r["oracle"], (r["run_s"], 100 * err), fontsize=7, xytext=(4, 3),
+                    textcoords="offset points")
+    ax.axvline(rows[0]["run_s"], ls="--", c="gray", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("run time on this machine (s); dashed: the target MPM run")
+    ax.set_ylabel("max(runout, displacement range) error (%)")
+    ax.set_title(rows[0]["oracle"].replace("target ", "target: "))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

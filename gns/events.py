@@ -1,0 +1,76 @@
+"""What a predicted run does and when: events, windows, extents (the oracle's analysis).
+
+Works on any trajectory [frames, n, 3] (m) with its frame interval (s): a GNS rollout, or
+an MPM run when the prediction is scored. Speeds are backward differences per frame (m/s).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MOVING_SPEED_FRACTION = 0.05  # a particle moves when faster than this fraction of the peak speed
+ONSET_FRACTION = 0.05  # failure onset: the speed scale first exceeds this fraction of its peak
+REST_FRACTION = 0.01  # end of runout: kinetic energy back below this fraction of its peak
+SPEED_QUANTILE = 0.95  # the speed scale of a frame
+
+
+@dataclass(frozen=True)
+class Events:
+    onset_s: float  # failure initiation
+    peak_s: float  # fastest motion (kinetic-energy peak)
+    runout_end_s: float  # back to rest
+    duration_s: float  # the trajectory's last time
+    peak_speed_m_s: float  # speed scale (SPEED_QUANTILE) at the peak
+    speed_scale_m_s: np.ndarray  # [frames] SPEED_QUANTILE of the particle speeds
+    kinetic_m2_s2: np.ndarray  # [frames] mean squared speed (specific kinetic energy x 2)
+
+
+def speeds(positions: np.ndarray, frame_interval_s: float) -> np.ndarray:
+    """[frames, n] particle speed (m/s); frame 0 has speed 0."""
+    s = np.zeros(positions.shape[:2])
+    s[1:] = np.linalg.norm(np.diff(positions.astype(np.float64), axis=0), axis=2) / frame_interval_s
+    return s
+
+
+def find_events(positions: np.ndarray, frame_interval_s: float) -> Events:
+    sp = speeds(positions, frame_interval_s)
+    scale = np.quantile(sp, SPEED_QUANTILE, axis=1)
+    ke = (sp * sp).mean(axis=1)
+    t = np.arange(len(sp)) * frame_interval_s
+    peak = int(np.argmax(ke))
+    above = np.flatnonzero(scale >= ONSET_FRACTION * scale.max())
+    onset = int(above[0]) if len(above) else 0
+    after = np.flatnonzero(ke[peak:] < REST_FRACTION * ke[peak])
+    end = peak + int(after[0]) if len(after) else len(ke) - 1
+    return Events(float(t[onset]), float(t[peak]), float(t[end]), float(t[-1]),
+                  float(scale[peak]), scale, ke)
+
+
+def moving_extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float,
+                  speed_threshold_m_s: float) -> np.ndarray | None:
+    """[3, 2] bounds (m) of the particles that move faster than the threshold at any frame in
+    [t0, t1], over all their positions in the window; None when nothing moves."""
+    k0 = max(int(np.floor(t0 / frame_interval_s)), 0)
+    k1 = min(int(np.ceil(t1 / frame_interval_s)), len(positions) - 1)
+    sp = speeds(positions, frame_interval_s)[k0:k1 + 1]
+    moving = (sp > speed_threshold_m_s).any(axis=0)
+    if not moving.any():
+        return None
+    pts = positions[k0:k1 + 1, moving].reshape(-1, 3)
+    return np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
+
+
+def extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> np.ndarray:
+    """[3, 2] bounds (m) of every particle over the frames in [t0, t1]."""
+    k0 = max(int(np.floor(t0 / frame_interval_s)), 0)
+    k1 = min(int(np.ceil(t1 / frame_interval_s)), len(positions) - 1)
+    pts = positions[k0:k1 + 1].reshape(-1, 3)
+    return np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
+
+
+def displacement_range(positions: np.ndarray) -> tuple[float, float]:
+    """(min, max) of |x(t) - x(0)| over all frames and particles, m."""
+    d = np.linalg.norm(positions - positions[0], axis=2)
+    return float(d.min()), float(d.max())

@@ -58,6 +58,18 @@ def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[GNS, dict]:
     return model.eval(), ckpt
 
 
+def ship(src: str | Path, dst: str | Path) -> Path:
+    """Copy a checkpoint without its optimizer state (what the repository ships)."""
+    ckpt = torch.load(src, map_location="cpu", weights_only=True)
+    if ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{src}: not a {CHECKPOINT_FORMAT} checkpoint")
+    ckpt.pop("optimizer", None)
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(ckpt, dst)
+    return dst
+
+
 class Sampler:
     """Random training windows: C+1 input frames and the next frame, with noise."""
 

@@ -142,6 +142,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0 if all("error" not in r for r in rows) else 1
 
 
+def _cmd_ship(args: argparse.Namespace) -> int:
+    from gns.train import ship
+
+    try:
+        out = ship(args.checkpoint, args.out)
+    except (OSError, ValueError, RuntimeError) as exc:
+        print(f"minority oracle ship: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"{out}: {out.stat().st_size / 1e6:.2f} MB", file=sys.stderr)
+    return 0
+
+
 def add_oracle_parser(sub) -> None:
     p = sub.add_parser("oracle", help="GNS surrogate: dataset, train, rollout, spec",
                        description="Build the GNS training set from MPM runs, train the "
@@ -205,6 +217,13 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--out", type=Path, help="JSON file (default: stdout)")
     q.add_argument("--threads", type=int, help="torch CPU threads")
     q.set_defaults(func=_cmd_evaluate)
+
+    q = osub.add_parser("ship", help="copy a checkpoint without its optimizer state",
+                        description="Write the checkpoint the repository ships: weights, "
+                                    "model config, statistics, history; no optimizer state.")
+    q.add_argument("checkpoint", type=Path)
+    q.add_argument("out", type=Path)
+    q.set_defaults(func=_cmd_ship)
 
     q = osub.add_parser("rollout", help="predict a scene with a checkpoint",
                         description="Seed the scene's bodies at the model's particle spacing "

@@ -278,6 +278,12 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
         assert (out / "vtk" / "rollout.pvd").exists()
     else:  # an untrained model may leave the domain: then the error names the frame
         assert "rollout diverged at frame" in p.stderr, p.stderr
+    p = subprocess.run(run + ["ship", str(ck), str(tmp_path / "s.pt")], capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    shipped = torch.load(tmp_path / "s.pt", weights_only=True)
+    assert "optimizer" not in shipped and shipped["step"] == 3
+    assert (tmp_path / "s.pt").stat().st_size < ck.stat().st_size
     p = subprocess.run(run + ["rollout", str(tmp_path / "missing.pt"), "tiny"],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "missing.pt" in p.stderr

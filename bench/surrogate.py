@@ -100,8 +100,7 @@ def main() -> None:
                              model.config.input_velocities)
         frames = round(scene.duration_s / st["frame_interval_s"])
         t0 = time.perf_counter()
-        pred, _ = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
-                          spacing_m=st["particle_spacing_m"])
+        pred, _ = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames)
         wall = time.perf_counter() - t0
         err = relative_errors(deposit(pred[model.config.input_velocities:]), ref)
         c = model.config

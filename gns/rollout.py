@@ -1,7 +1,11 @@
 """Rollout: the GNS predicts a run frame by frame from its first C+1 frames.
 
+Walls are rigid, as in the MPM (which clamps a particle advected out of the domain back to
+the face): a predicted position slightly outside the domain is clamped to it and counted.
 A rollout stops with `RolloutError` naming the frame when positions turn non-finite or a
-particle leaves the domain by more than `DOMAIN_TOLERANCE` particle spacings.
+particle leaves the domain by more than `ESCAPE_RADII` connectivity radii in one frame (no
+physical step moves that far: the fastest particles of the training runs move a seventh of
+a radius per frame).
 """
 
 from __future__ import annotations
@@ -17,11 +21,17 @@ import torch
 
 from gns.graph import radius_graph
 
-DOMAIN_TOLERANCE = 0.5  # particle spacings outside the domain that count as leaving it
+ESCAPE_RADII = 1.0  # connectivity radii outside the domain that count as leaving it
 
 
 class RolloutError(RuntimeError):
-    """The rollout diverged; the message names the frame."""
+    """The rollout diverged; the message names the frame. `frame` is that frame and
+    `positions` [frame, n, 3] the frames before it."""
+
+    def __init__(self, message: str, frame: int, positions: np.ndarray) -> None:
+        super().__init__(message)
+        self.frame = frame
+        self.positions = positions
 
 
 @dataclass
@@ -75,12 +85,12 @@ def initial_state(scene_toml: str | Path, spacing_m: float, frame_interval_s: fl
 
 
 def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
-            frames: int, *, device: str = "cpu", spacing_m: float | None = None,
-            progress: bool = False, log=sys.stderr) -> tuple[np.ndarray, dict]:
+            frames: int, *, device: str = "cpu", progress: bool = False,
+            log=sys.stderr) -> tuple[np.ndarray, dict]:
     """Predict `frames` frames after the C+1 given ones ([C+1, n, 3], m).
 
-    Returns all frames [C+1+frames, n, 3] float32 and timing {graph_s, model_s}.
-    spacing_m: particle spacing for the domain check (default: the model's training spacing)."""
+    Returns all frames [C+1+frames, n, 3] float32 and {graph_s, model_s, clamped} (clamped:
+    particle positions put back on a domain face, summed over frames)."""
     c1 = model.config.input_velocities + 1
     if positions.shape[0] < c1:
         raise ValueError(f"rollout needs {c1} initial frames, got {positions.shape[0]}")
@@ -92,8 +102,9 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
     fr = torch.full((n,), float(friction_deg), device=device)
     bounds = torch.as_tensor(bounds_m, dtype=torch.float32, device=device)
     lo, hi = np.asarray(bounds_m)[:, 0], np.asarray(bounds_m)[:, 1]
-    tol = DOMAIN_TOLERANCE * (spacing_m if spacing_m is not None else model.spacing)
-    timing = {"graph_s": 0.0, "model_s": 0.0}
+    tol = ESCAPE_RADII * model.radius
+    lo_t, hi_t = bounds[:, 0], bounds[:, 1]
+    timing = {"graph_s": 0.0, "model_s": 0.0, "clamped": 0}
     t_print = time.perf_counter()
     with torch.no_grad():
         for k in range(frames):
@@ -104,18 +115,24 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
             r_t = torch.as_tensor(r, device=device)
             t1 = time.perf_counter()
             nxt = model.next_positions(window, fr, bounds, s_t, r_t)
-            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
             x = nxt.cpu().numpy()
-            timing["graph_s"] += t1 - t0
-            timing["model_s"] += time.perf_counter() - t1
             frame = c1 + k
             if not np.isfinite(x).all():
-                raise RolloutError(f"rollout diverged at frame {frame}: non-finite positions")
+                raise RolloutError(f"rollout diverged at frame {frame}: non-finite positions",
+                                   frame, out[:frame])
             out_lo, out_hi = (x < lo - tol).any(axis=1), (x > hi + tol).any(axis=1)
             if out_lo.any() or out_hi.any():
                 i = int(np.flatnonzero(out_lo | out_hi)[0])
                 raise RolloutError(f"rollout diverged at frame {frame}: particle {i} left the "
-                                   f"domain at {x[i].round(4).tolist()} m")
+                                   f"domain at {x[i].round(4).tolist()} m", frame, out[:frame])
+            outside = (x < lo) | (x > hi)
+            if outside.any():
+                timing["clamped"] += int(outside.any(axis=1).sum())
+                nxt = torch.minimum(torch.maximum(nxt, lo_t), hi_t)
+                x = nxt.cpu().numpy()
+            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+            timing["graph_s"] += t1 - t0
+            timing["model_s"] += time.perf_counter() - t1
             out[frame] = x
             if progress and time.perf_counter() - t_print > 2.0:
                 print(f"rollout: frame {frame}/{c1 + frames - 1}", file=log, flush=True)
@@ -123,14 +140,17 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
     return out, timing
 
 
-def rollout_error(model, traj, frames: int, device: str = "cpu") -> float:
-    """Mean position error (m) over a rollout of `frames` frames against the trajectory."""
+def rollout_error(model, traj, frames: int, device: str = "cpu") -> tuple[float, int]:
+    """Mean position error (m) against the trajectory over a rollout of up to `frames`
+    frames, and the frames predicted (fewer when the rollout diverged)."""
     c1 = model.config.input_velocities + 1
     frames = min(frames, traj.positions.shape[0] - c1)
     try:
         pred, _ = rollout(model, traj.positions[:c1].astype(np.float64), traj.friction_angle_deg,
                           traj.bounds_m, frames, device=device)
-    except RolloutError:
-        return float("inf")
-    true = traj.positions[:c1 + frames]
-    return float(np.linalg.norm(pred - true, axis=2).mean())
+    except RolloutError as exc:
+        pred = exc.positions
+    done = len(pred) - c1
+    true = traj.positions[:len(pred)]
+    return float(np.linalg.norm(pred[c1:] - true[c1:], axis=2).mean()) if done else float(
+        "inf"), done

@@ -138,7 +138,7 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     sampler = Sampler(train_trajs, model_config.input_velocities, cfg.noise_std, rng)
     acc_mean = torch.as_tensor(stats["acc_mean"], device=device)
     acc_std = torch.as_tensor(stats["acc_std"], device=device)
-    best = min((h["val_error_m"] for h in history if "val_error_m" in h), default=math.inf)
+    best = min((h["val_error_m"] for h in history if h.get("val_complete")), default=math.inf)
     n_params = sum(p.numel() for p in model.parameters())
     print(f"train: {len(train_trajs)} train / {len(val_trajs)} valid scenes, model "
           f"{asdict(model_config)} ({n_params} parameters), {device}, "
@@ -181,13 +181,18 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
             save(out)
         if val_trajs and (step % cfg.val_every == 0 or step == cfg.steps):
             model.eval()
-            err = float(np.mean([rollout_error(model, t, cfg.val_frames, device)
-                                 for t in val_trajs]))
+            scores = [rollout_error(model, t, cfg.val_frames, device) for t in val_trajs]
             model.train()
-            history.append({"step": step, "val_error_m": err})
-            print(f"train: step {step} validation rollout mean position error {err:.5f} m",
+            err = float(np.mean([e for e, _ in scores]))
+            reached = min(f for _, f in scores)
+            want = min(cfg.val_frames, min(t.positions.shape[0] for t in val_trajs)
+                       - model_config.input_velocities - 1)
+            history.append({"step": step, "val_error_m": err, "val_frames": reached,
+                            "val_complete": reached >= want})
+            print(f"train: step {step} validation rollout mean position error {err:.5f} m"
+                  + ("" if reached >= want else f" (a rollout diverged at frame {reached})"),
                   file=log, flush=True)
-            if err < best:
+            if reached >= want and err < best:
                 best = err
                 save(out.with_suffix(".best.pt"))
     save(out)

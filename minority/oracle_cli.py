@@ -94,8 +94,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
               f"{frames} frames of {st['frame_interval_s']} s", file=sys.stderr)
         t0 = time.perf_counter()
         pos, timing = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
-                              device=args.device, spacing_m=st["particle_spacing_m"],
-                              progress=True)
+                              device=args.device, progress=True)
         wall = time.perf_counter() - t0
         pos = pos[model.config.input_velocities:]  # the history is the resting state: t = 0
         h5 = write_hdf5(args.out / "rollout.h5", pos, st["frame_interval_s"], attrs={
@@ -109,7 +108,8 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
         return 1
     print(f"rollout: {frames} frames in {wall:.1f} s (graph {timing['graph_s']:.1f} s, model "
-          f"{timing['model_s']:.1f} s) -> {h5}", file=sys.stderr)
+          f"{timing['model_s']:.1f} s, {timing['clamped']} positions clamped to the domain) "
+          f"-> {h5}", file=sys.stderr)
     return 0
 
 

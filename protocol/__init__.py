@@ -5,8 +5,9 @@ Imports none of the project's other packages.
 
 from protocol.errors import ProtocolError, SpecError
 from protocol.messages import Chunk, Event, EventKind, Frame, Timing, decode_as, decode_message
-from protocol.spec import Camera, Spec, View
+from protocol.spec import Camera, DataRequest, Region, Spec, View
 from protocol.wire import MessageKind
 
-__all__ = ["Camera", "Chunk", "Event", "EventKind", "Frame", "MessageKind", "ProtocolError",
-           "Spec", "SpecError", "Timing", "View", "decode_as", "decode_message"]
+__all__ = ["Camera", "Chunk", "DataRequest", "Event", "EventKind", "Frame", "MessageKind",
+           "ProtocolError", "Region", "Spec", "SpecError", "Timing", "View", "decode_as",
+           "decode_message"]

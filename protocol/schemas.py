@@ -28,8 +28,10 @@ _CAMERA = _obj({"position": _VEC3, "focal_point": _VEC3, "view_up": _VEC3,
 _VIEW = _obj({"name": _STR, "camera": _CAMERA, "width": _INT, "height": _INT,
               "background": _VEC3, "field": _STR, "colormap": _STR,
               "range": {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2},
-              "t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT},
+              "t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT,
+              "regions": {"type": "array", "items": _STR}},
              ["name", "camera"])
+_REGION = _obj({"name": _STR, "lo_m": _VEC3, "hi_m": _VEC3})
 
 JSON_SCHEMAS: dict[str, dict] = {
     # Field names and types of Foxglove's CompressedImage, so viewers show frames.
@@ -41,7 +43,9 @@ JSON_SCHEMAS: dict[str, dict] = {
         "run": _STR, "view": _STR, "step": _INT, "time_s": _NUM, "width": _INT, "height": _INT,
     }, ["timestamp", "frame_id", "data", "format"]),
     "minority.Spec": _obj({"version": _INT, "run": _STR, "sphere_radius_m": _NUM,
-                           "views": {"type": "array", "items": _VIEW}}, ["version", "run", "views"]),
+                           "views": {"type": "array", "items": _VIEW},
+                           "regions": {"type": "array", "items": _REGION}},
+                          ["version", "run", "views"]),
     "minority.Timing": _obj({"run": _STR, "step": _INT, "view": _STR, "time_s": _NUM,
                              "receive_s": _NUM, "setup_s": _NUM, "render_s": _NUM,
                              "bytes": _INT, "particles": _INT, "ranks_expected": _INT,

@@ -3,6 +3,12 @@
 A minimal versioned model (SPEC_VERSION 1); the oracle issue completes it. Specs live as
 JSON files, travel as SPEC messages (the JSON as the envelope meta) and validate with
 errors that start with the path of the bad field, e.g. ``views[1].camera.view_up``.
+
+Regions of interest (optional, still version 1): the spec may name axis-aligned boxes
+(`regions`), and a view may list the regions whose particles it needs (`views[i].regions`).
+A view without regions needs every particle. `Spec.request(step, time_s)` says what the
+simulation must send at a step: the union of the fields and of the regions of the views
+scheduled then. A spec without regions reads and writes exactly as before.
 """
 
 from __future__ import annotations
@@ -60,6 +66,38 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class Region:
+    """A named axis-aligned box of interest; a particle at x (m) is inside when
+    lo_m <= x <= hi_m on every axis."""
+
+    name: str
+    lo_m: tuple[float, float, float]
+    hi_m: tuple[float, float, float]
+
+    @classmethod
+    def from_dict(cls, obj, where: str) -> Region:
+        r = check.keys(obj, where, {"name", "lo_m", "hi_m"}, error=SpecError)
+        lo = check.vector(r["lo_m"], f"{where}.lo_m", error=SpecError)
+        hi = check.vector(r["hi_m"], f"{where}.hi_m", error=SpecError)
+        if not all(a <= b for a, b in zip(lo, hi, strict=True)):
+            raise SpecError(f"{where}: lo_m {list(lo)} exceeds hi_m {list(hi)} on some axis")
+        return cls(check.name(r["name"], f"{where}.name", SpecError), lo, hi)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "lo_m": list(self.lo_m), "hi_m": list(self.hi_m)}
+
+
+@dataclass(frozen=True)
+class DataRequest:
+    """What the simulation sends at one step: `fields` (besides positions) for the particles
+    inside any of `regions`, or for every particle when `regions` is None."""
+
+    views: tuple[str, ...]  # the views scheduled at the step
+    fields: tuple[str, ...]  # in first-use order
+    regions: tuple[Region, ...] | None
+
+
+@dataclass(frozen=True)
 class View:
     """One rendered view: camera, image, colors, and when to render it."""
 
@@ -74,12 +112,16 @@ class View:
     t_start_s: float = 0.0  # simulated time window, s
     t_end_s: float = math.inf
     every_steps: int = 20  # cadence: render every n-th sim step inside the window
+    regions: tuple[str, ...] = ()  # names of the spec's regions it shows; () = everything
 
     @classmethod
     def from_dict(cls, obj, where: str) -> View:
         v = check.keys(obj, where, {"name", "camera"},
                        {"width", "height", "background", "field", "colormap", "range",
-                        "t_start_s", "t_end_s", "every_steps"}, error=SpecError)
+                        "t_start_s", "t_end_s", "every_steps", "regions"}, error=SpecError)
+        regions = v.get("regions", [])
+        if not isinstance(regions, list):
+            raise SpecError(f"{where}.regions: expected a list of region names")
         rng = check.vector(v.get("range", cls.range), f"{where}.range", 2, SpecError)
         if not rng[0] < rng[1]:
             raise SpecError(f"{where}.range: lower bound {rng[0]} must be below upper {rng[1]}")
@@ -102,7 +144,9 @@ class View:
                                        SpecError),
                    range=rng, t_start_s=t0, t_end_s=t1,
                    every_steps=check.integer(v.get("every_steps", cls.every_steps),
-                                             f"{where}.every_steps", 1, None, SpecError))
+                                             f"{where}.every_steps", 1, None, SpecError),
+                   regions=tuple(check.name(r, f"{where}.regions[{i}]", SpecError)
+                                 for i, r in enumerate(regions)))
 
     def wants(self, step: int, time_s: float) -> bool:
         """Whether this view renders sim step `step` at simulated time `time_s` (s)."""
@@ -111,6 +155,10 @@ class View:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["t_end_s"] = None if math.isinf(self.t_end_s) else self.t_end_s
+        if self.regions:
+            d["regions"] = list(self.regions)
+        else:
+            del d["regions"]  # a spec without regions writes as before
         return d
 
 
@@ -124,6 +172,7 @@ class Spec:
     views: tuple[View, ...]
     version: int = SPEC_VERSION
     sphere_radius_m: float | None = None  # render radius; None: half the particle spacing
+    regions: tuple[Region, ...] = ()  # regions of interest the views refer to by name
     sent_ns: int = field(default=0, compare=False)
 
     @property
@@ -134,15 +183,32 @@ class Spec:
     def wants(self, step: int, time_s: float) -> list[View]:
         return [v for v in self.views if v.wants(step, time_s)]
 
+    def request(self, step: int, time_s: float) -> DataRequest | None:
+        """What the simulation must send at sim step `step`, simulated time `time_s` (s):
+        None when no view is scheduled; regions None when a scheduled view needs every
+        particle."""
+        views = self.wants(step, time_s)
+        if not views:
+            return None
+        fields = tuple(dict.fromkeys(v.field for v in views))
+        if any(not v.regions for v in views):
+            return DataRequest(tuple(v.name for v in views), fields, None)
+        by_name = {r.name: r for r in self.regions}
+        names = dict.fromkeys(name for v in views for name in v.regions)
+        return DataRequest(tuple(v.name for v in views), fields,
+                           tuple(by_name[n] for n in names))
+
     def to_dict(self) -> dict:
         d = {"version": self.version, "run": self.run, "views": [v.to_dict() for v in self.views]}
         if self.sphere_radius_m is not None:
             d["sphere_radius_m"] = self.sphere_radius_m
+        if self.regions:
+            d["regions"] = [r.to_dict() for r in self.regions]
         return d
 
     @classmethod
     def from_dict(cls, obj, sent_ns: int = 0) -> Spec:
-        s = check.keys(obj, "spec", {"version", "run", "views"}, {"sphere_radius_m"},
+        s = check.keys(obj, "spec", {"version", "run", "views"}, {"sphere_radius_m", "regions"},
                        error=SpecError)
         version = check.integer(s["version"], "version", error=SpecError)
         if version != SPEC_VERSION:
@@ -157,8 +223,20 @@ class Spec:
         radius = s.get("sphere_radius_m")
         if radius is not None:
             radius = check.number(radius, "sphere_radius_m", 1e-9, None, SpecError)
+        raw_regions = s.get("regions", [])
+        if not isinstance(raw_regions, list):
+            raise SpecError("regions: expected a list of {name, lo_m, hi_m}")
+        regions = tuple(Region.from_dict(r, f"regions[{i}]") for i, r in enumerate(raw_regions))
+        region_names = [r.name for r in regions]
+        if len(set(region_names)) != len(region_names):
+            raise SpecError(f"regions: region names must be unique, got {region_names}")
+        for i, v in enumerate(views):
+            for j, name in enumerate(v.regions):
+                if name not in region_names:
+                    raise SpecError(f"views[{i}].regions[{j}]: no region named {name!r} "
+                                    f"(regions: {region_names})")
         return cls(run=check.name(s["run"], "run", SpecError), views=views, version=version,
-                   sphere_radius_m=radius, sent_ns=sent_ns)
+                   sphere_radius_m=radius, regions=regions, sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:

@@ -47,6 +47,14 @@ def with_change(path: str, value):
     ("views.0.every_steps", 0, r"views\[0\].every_steps"),
     ("views.0.colour", "red", r"views\[0\]: unknown field\(s\) colour"),
     ("sphere_radius_m", 0, r"sphere_radius_m: 0 is outside"),
+    ("regions", {"name": "a"}, "regions: expected a list"),
+    ("regions", [{"name": "a", "lo_m": [0, 0, 0]}], r"regions\[0\]: missing hi_m"),
+    ("regions", [{"name": "a", "lo_m": [0, 0, 1], "hi_m": [1, 1, 0]}],
+     r"regions\[0\]: lo_m \[0.0, 0.0, 1.0\] exceeds hi_m"),
+    ("regions", [{"name": "a", "lo_m": [0, 0, 0], "hi_m": [1, 1, 1]}] * 2,
+     "region names must be unique"),
+    ("views.0.regions", "front", r"views\[0\].regions: expected a list"),
+    ("views.0.regions", ["nowhere"], r"views\[0\].regions\[0\]: no region named 'nowhere'"),
 ])
 def test_bad_spec_names_the_field(path, value, message):
     with pytest.raises(SpecError, match=message):
@@ -90,3 +98,46 @@ def test_shipped_example_spec_loads():
     assert spec.fields == ("displacement",)
     assert [v.name for v in spec.wants(20, 0.01)] == ["side"]
     assert [v.name for v in spec.wants(4000, 0.5)] == ["top", "aerial"]
+
+
+def with_regions() -> Spec:
+    d = base()
+    d["regions"] = [{"name": "column", "lo_m": [0.0, 0.0, 0.0], "hi_m": [0.2, 0.5, 0.5]},
+                    {"name": "front", "lo_m": [0.3, 0.0, 0.0], "hi_m": [1.0, 0.5, 0.1]}]
+    d["views"][0]["regions"] = ["column", "front"]
+    d["views"][1]["regions"] = ["front"]
+    return Spec.from_dict(d)
+
+
+def test_regions_round_trip_and_old_specs_write_as_before(tmp_path):
+    spec = with_regions()
+    spec.save(tmp_path / "spec.json")
+    assert Spec.load(tmp_path / "spec.json") == spec
+    assert [r.name for r in spec.regions] == ["column", "front"]
+    assert spec.views[1].regions == ("front",)
+    plain = make_spec().to_dict()  # no regions anywhere: no new keys in the JSON
+    assert "regions" not in plain and all("regions" not in v for v in plain["views"])
+
+
+def test_request_unions_the_scheduled_views():
+    spec = make_spec()  # views without regions: every particle
+    req = spec.request(20, 0.1)
+    assert req.views == ("side",) and req.fields == ("displacement",) and req.regions is None
+    assert spec.request(21, 0.1) is None
+    spec = with_regions()
+    req = spec.request(20, 0.1)
+    assert req.fields == ("displacement",) and [r.name for r in req.regions] == ["column", "front"]
+    req = spec.request(40, 0.2)
+    assert req.fields == ("velocity_magnitude",) and [r.name for r in req.regions] == ["front"]
+    d = with_regions().to_dict()
+    d["views"][0]["t_end_s"] = None  # both views at step 40, t = 0.2 s: union of both
+    del d["views"][1]["regions"]  # ... and one of them needs every particle
+    req = Spec.from_dict(d).request(40, 0.2)
+    assert req.fields == ("displacement", "velocity_magnitude") and req.regions is None
+
+
+def test_shipped_example_spec_requests_every_particle():
+    from pathlib import Path
+
+    spec = Spec.load(Path(__file__).parent.parent / "deploy" / "spec-column.json")
+    assert spec.regions == () and spec.request(20, 0.01).regions is None

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 NOT_BUILT = 2  # exit status of a subcommand that is not built yet
+DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not imported here)
 
 
 def _not_built(name: str):
@@ -105,23 +106,49 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_sim(args: argparse.Namespace) -> int:
     from sim.driver import SimulationError
-    from sim.runner import run_scene
+    from sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
     from sim.scene import SceneError, builtin_scene_path
 
+    if args.ranks is not None and args.ranks < 1:
+        print("minority sim: error: --ranks must be at least 1", file=sys.stderr)
+        return 1
+    if not under_launcher() and (args.ranks or 1) > 1:
+        return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
     try:
         scene = Path(args.scene)
         if not scene.exists() and scene.suffix == "":
             scene = builtin_scene_path(args.scene)
-        out = args.out or Path(f"{scene.stem}.h5")
-        summary = run_scene(scene, out, dt=args.dt, threads=args.threads,
-                            progress=not args.quiet)
+        publish = None
+        if not args.no_publish:
+            from protocol.session import options_from_args
+            from sim.publish import PublishOptions
+
+            publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
+                                     record=args.record)
+        config = RankRunConfig(scene_path=scene, out=args.out or Path(f"{scene.stem}.h5"),
+                               dt=args.dt, threads=args.threads,
+                               rebalance_every=args.rebalance_every, progress=not args.quiet,
+                               publish=publish, run=args.run, wait_s=args.wait,
+                               max_steps=args.steps)
+        from mpi4py import MPI
+
+        if args.ranks is not None and args.ranks != MPI.COMM_WORLD.Get_size():
+            raise ValueError(f"--ranks {args.ranks}, but the launcher started "
+                             f"{MPI.COMM_WORLD.Get_size()} processes")
+        summary = run_ranks(config)
     except (SceneError, SimulationError, ValueError, OSError) as exc:
         print(f"minority sim: error: {exc}", file=sys.stderr)
         return 1
-    print(f"{summary.particles} particles, {summary.steps} steps, {summary.frames} frames, "
-          f"{summary.sim_time_s:.3f} s simulated in {summary.wall_s:.1f} s wall "
-          f"({summary.particle_steps_per_s:.3g} particle-steps/s) -> {summary.out_path}",
-          file=sys.stderr)
+    if MPI.COMM_WORLD.Get_rank() == 0:
+        slabs = (f", {summary.rebalances} rebalances, {summary.migrated} particles migrated"
+                 if summary.ranks > 1 else "")
+        p = summary.publish
+        sent = (f"; run {summary.run}: {p['sent']} of {p['scheduled']} chunks sent, "
+                f"{p['dropped']} dropped" if p else "")
+        print(f"{summary.particles} particles, {summary.ranks} rank(s), {summary.steps} steps, "
+              f"{summary.frames} frames, {summary.sim_time_s:.3f} s simulated in "
+              f"{summary.wall_s:.1f} s wall ({summary.particle_steps_per_s:.3g} "
+              f"particle-steps/s{slabs}) -> {summary.out_path}{sent}", file=sys.stderr)
     return 0
 
 
@@ -162,8 +189,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, metavar="S",
                    help="fixed time step in s; refused if above the CFL bound (default: the "
                         "CFL step, recomputed every step)")
-    p.add_argument("--threads", type=int, metavar="N", help="numba threads (default: all cores)")
+    p.add_argument("--threads", type=int, metavar="N",
+                   help="numba threads per rank (default: the node's cores / its ranks)")
+    p.add_argument("--ranks", type=int, metavar="N",
+                   help="MPI ranks: slabs of the grid along x (default 1, or what the MPI "
+                        "launcher started); N > 1 re-runs this command under mpiexec -n N")
+    p.add_argument("--rebalance-every", type=int, default=DEFAULT_REBALANCE_EVERY, metavar="K",
+                   help="move the slab boundaries to balance the particle count every K steps "
+                        f"(0: never; default {DEFAULT_REBALANCE_EVERY})")
+    p.add_argument("--steps", type=int, metavar="N", help="stop after N steps")
+    p.add_argument("--run", metavar="ID",
+                   help="run id of the keys minority/ID/...: the run of the server's spec "
+                        "(default: the scene name)")
+    p.add_argument("--spec", type=Path, metavar="FILE",
+                   help="spec to follow when no server serves one (its run must be the run id)")
+    p.add_argument("--record", type=Path, metavar="FILE.mcap",
+                   help="also write what the ranks publish to MCAP (rank 0: FILE.mcap, rank "
+                        "r > 0: FILE.rank{r}.mcap)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="keep trying to reach the server for S seconds at start (default 0: "
+                        "one try; without a server the sim runs on and says so)")
+    p.add_argument("--no-publish", action="store_true",
+                   help="no network: do not look for a server, publish or record")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    _add_network(p)
     p.set_defaults(func=_cmd_sim)
 
     from minority.oracle_cli import add_oracle_parser
@@ -208,7 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv  # `minority sim --ranks N` re-runs itself under mpiexec
     return args.func(args)
 
 

@@ -4,8 +4,11 @@ One step: bin particles by block (parallel stable counting sort; every
 REORDER_INTERVAL_STEPS also permute the particle arrays into that order) -> P2G scatter into
 per-block buffers -> grid: sum the buffers per node and update (gravity, walls) -> G2P
 (advection, plasticity, stress). Phase times: bin, p2g (scatter), grid (gather + update),
-g2p. The time step follows the CFL condition dt = cfl * dx / (c_p + max |v|), recomputed
-every step; a fixed user dt is accepted only while it stays below that bound.
+g2p, and comm (a slab rank's exchanges, `sim.decomp.SlabSimulator`; 0 here). The hooks
+`_exchange_particles`, `_order_blocks`, `_permute`, `_exchange_buffers` and `_reduce_stats`
+are where a slab rank plugs in; here they do nothing beyond the single-process step. The
+time step follows the CFL condition dt = cfl * dx / (c_p + max |v|), recomputed every step;
+a fixed user dt is accepted only while it stays below that bound.
 """
 
 from __future__ import annotations
@@ -45,10 +48,14 @@ class PhaseTimes:
     p2g: float = 0.0
     grid: float = 0.0
     g2p: float = 0.0
+    comm: float = 0.0  # slab ranks: migration, buffer exchange, reductions
+    # CPU time of the calling thread in bin + p2g + grid + g2p, s: the work itself, without
+    # time lost to other processes (all of it with one numba thread; part of it with more)
+    compute_cpu: float = 0.0
 
     @property
     def total(self) -> float:
-        return self.bin + self.p2g + self.grid + self.g2p
+        return self.bin + self.p2g + self.grid + self.g2p + self.comm
 
 
 @dataclass
@@ -94,23 +101,23 @@ class Diagnostics:
 
 
 @dataclass
-class _Binning:
+class BlockBinning:
     """Scratch arrays of the counting sort and the per-block P2G buffers (reused every
     step; `buf` grows when more blocks become non-empty)."""
 
     nblocks3: np.ndarray  # [3] int64, blocks per axis
     block_start: np.ndarray  # [nblocks + 1] int64
-    order: np.ndarray  # [n] int64, sorted slot -> particle slot
+    order: np.ndarray  # [capacity >= n] int64, sorted slot -> particle slot
     block_slot: np.ndarray  # [nblocks] int64, buffer slot of a non-empty block or -1
     active_blocks: np.ndarray  # [nblocks] int64, non-empty blocks (first n_active)
-    key: np.ndarray  # [n] int64, block of each particle
+    key: np.ndarray  # [capacity >= n] int64, block of each particle
     counts: np.ndarray  # [BIN_CHUNKS, nblocks] int64, counting-sort scratch
     first_bad: np.ndarray  # [BIN_CHUNKS] int64
     buf: np.ndarray  # [slots, BUF_NODES, BUF_NODES, BUF_NODES, 4] float64, P2G buffers
     n_active: int = 0
 
     @classmethod
-    def allocate(cls, n: int, grid_shape) -> _Binning:
+    def allocate(cls, n: int, grid_shape) -> BlockBinning:
         nb3 = np.array([(s + kernels.BLOCK_CELLS - 1) // kernels.BLOCK_CELLS
                         for s in grid_shape], dtype=np.int64)
         nb = int(np.prod(nb3))
@@ -123,9 +130,11 @@ class _Binning:
     def _buffers(slots: int) -> np.ndarray:
         return np.empty((slots,) + (kernels.BUF_NODES,) * 3 + (4,))
 
-    def ensure_buffers(self) -> None:
-        if self.buf.shape[0] < self.n_active:
-            self.buf = self._buffers(self.n_active + self.n_active // 4 + 8)
+    def ensure_buffers(self, extra: int = 0) -> None:
+        """Room for the n_active block buffers plus `extra` (a slab rank's ghost blocks)."""
+        need = self.n_active + extra
+        if self.buf.shape[0] < need:
+            self.buf = self._buffers(need + need // 4 + 8)
 
 
 @dataclass
@@ -148,10 +157,8 @@ class Simulator:
                 raise ValueError(f"threads must be in [1, {numba.config.NUMBA_NUM_THREADS}], "
                                  f"got {self.threads}")
             numba.set_num_threads(self.threads)
-        self.particles = seed_particles(self.scene)
-        self.grid = make_grid(self.scene)
         self.walls = WallArrays.from_scene(self.scene)
-        self._bins = _Binning.allocate(self.particles.n, self.grid.shape)
+        self._init_state()
         self._stats = np.zeros(3)
         self._sums = np.zeros(8)
         self._gravity = np.array(self.scene.gravity_m_s2, dtype=np.float64)
@@ -159,9 +166,19 @@ class Simulator:
         self._hi = np.array(self.scene.size_m, dtype=np.float64)
         mat = self.scene.material
         self._lam, self._mu, self._alpha = mat.lame_lambda_pa, mat.shear_modulus_pa, mat.dp_alpha
-        self.max_speed_m_s = float(np.sqrt((self.particles.v ** 2).sum(axis=1).max()))
         if self.fixed_dt is not None:
             self.check_dt(self.fixed_dt)
+
+    def _init_state(self) -> None:
+        """Seed the particles, make the grid and the binning scratch; set x0 (m, position of
+        whole-domain node 0), the local grid's node offset and the max particle speed."""
+        self.particles = seed_particles(self.scene)
+        self.grid = make_grid(self.scene)
+        self._bins = BlockBinning.allocate(self.particles.n, self.grid.shape)
+        self._x0 = self.grid.x0
+        self._off = np.zeros(3, np.int64)
+        self._ghost_slots = 0  # extra P2G buffers a slab rank fills with its neighbours'
+        self.max_speed_m_s = float(np.sqrt((self.particles.v ** 2).sum(axis=1).max()))
 
     # --- time step -------------------------------------------------------------------
     def stable_dt(self) -> float:
@@ -192,40 +209,72 @@ class Simulator:
     # --- phases ----------------------------------------------------------------------
     def step(self, dt: float) -> None:
         """Advance one explicit MLS-MPM step of dt seconds."""
-        ps, g, b = self.particles, self.grid, self._bins
-        inv_dx = 1.0 / g.dx
-        x0 = g.x0
+        t_comm = time.perf_counter()
+        self._exchange_particles()
         t0 = time.perf_counter()
+        c0 = time.thread_time()
+        ps, g, b = self.particles, self.grid, self._bins
+        n = ps.n
+        inv_dx = 1.0 / g.dx
+        x0, off = self._x0, self._off
         bad, b.n_active = kernels.bin_particles(
-            ps.x, x0, inv_dx, np.array(g.shape, np.int64), b.nblocks3, b.block_start, b.order,
-            b.block_slot, b.active_blocks, b.key, b.counts, b.first_bad)
+            ps.x, x0, inv_dx, np.array(g.shape, np.int64), off, b.nblocks3, b.block_start,
+            b.order[:n], b.block_slot, b.active_blocks, b.key[:n], b.counts, b.first_bad)
         if bad >= 0:
             self._raise_nonfinite_or_escape(bad)
+        self._order_blocks()
         if self.step_count % REORDER_INTERVAL_STEPS == 0:
-            ps.permute(b.order)
-            b.order[:] = np.arange(ps.n)
-        b.ensure_buffers()
+            self._permute(b.order[:n])
+            ps = self.particles
+            b.order[:n] = np.arange(n)
+        b.ensure_buffers(self._ghost_slots)
         t1 = time.perf_counter()
         kernels.p2g_scatter(ps.x, ps.v, ps.C, ps.tau, ps.mass, ps.vol0, b.order, b.block_start,
-                            b.active_blocks, b.n_active, b.nblocks3, b.buf, x0, inv_dx, dt)
+                            b.active_blocks, b.n_active, b.nblocks3, b.buf, x0, off, inv_dx, dt)
         t2 = time.perf_counter()
+        c2 = time.thread_time()
+        self._exchange_buffers()
+        t2c = time.perf_counter()
+        c2c = time.thread_time()
         w = self.walls
         kernels.grid_gather_update(b.buf, b.block_slot, b.nblocks3, g.data, g.origin, g.dx, dt,
                                    self._gravity, w.axis, w.pos, w.side, w.mu, w.lo, w.hi)
         t3 = time.perf_counter()
-        kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, inv_dx, dt, self._lo,
+        kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, off, inv_dx, dt, self._lo,
                     self._hi, self._lam, self._mu, self._alpha, self._stats)
         t4 = time.perf_counter()
+        c4 = time.thread_time()
+        self._reduce_stats()
+        t5 = time.perf_counter()
         self.times.bin += t1 - t0
         self.times.p2g += t2 - t1
-        self.times.grid += t3 - t2
+        self.times.grid += t3 - t2c
         self.times.g2p += t4 - t3
+        self.times.comm += (t0 - t_comm) + (t2c - t2) + (t5 - t4)
+        self.times.compute_cpu += (c2 - c0) + (c4 - c2c)
         self.step_count += 1
         self.time_s += dt
         if self._stats[1] > 0:
             self.check_finite()
         self.clamp_count += int(self._stats[2])
         self.max_speed_m_s = math.sqrt(self._stats[0])
+
+    # --- hooks of a slab rank (sim.decomp.SlabSimulator); single process: no-ops -------
+    def _exchange_particles(self) -> None:
+        """Before binning: move particles to the rank that owns their block."""
+
+    def _order_blocks(self) -> None:
+        """After binning: make the order inside each block the single-process order."""
+
+    def _permute(self, order: np.ndarray) -> None:
+        """Physically reorder the particle arrays so that new slot k holds old order[k]."""
+        self.particles.permute(order)
+
+    def _exchange_buffers(self) -> None:
+        """After the P2G scatter: add the neighbours' buffers of the shared nodes."""
+
+    def _reduce_stats(self) -> None:
+        """After G2P: combine the G2P stats [max |v|^2, non-finite, clamped] over ranks."""
 
     def reached(self, until_s: float) -> bool:
         """True once time_s is at until_s (within half a step for a fixed dt)."""

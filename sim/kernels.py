@@ -6,8 +6,12 @@ state and the phase order: bin -> P2G scatter -> grid gather + update -> G2P. Co
 * grid: [nx, ny, nz, 4] float64; [..., :3] momentum (kg m/s) after the P2G sum and
   velocity (m/s) after the grid update, [..., 3] mass (kg). Local node (0, 0, 0) sits at
   x0 (m).
-* a particle at local cell coordinate X = (x - x0) / dx has base node floor(X - 1/2) and
-  touches the 3x3x3 nodes base + {0, 1, 2}.
+* a particle at cell coordinate X = (x - x0) / dx has base node floor(X - 1/2) and
+  touches the 3x3x3 nodes base + {0, 1, 2}. x0 (m) is the position of node 0 of the
+  *whole-domain* grid, and `off` [3] int64 is the whole-domain index of the local grid's
+  node (0, 0, 0): a rank's slab of the grid reads node base - off. Only integer indices
+  depend on off, so a particle's weights are bitwise the same on every rank (0 for a
+  single process).
 
 Race-free, deterministic parallel P2G: particles are counting-sorted (stable, parallel over
 fixed chunks) by block of BLOCK_CELLS^3 base cells. Each non-empty block scatters its
@@ -49,21 +53,21 @@ FIELD_NAMES = ("position", "velocity", "affine_velocity", "deformation_gradient"
 
 
 @njit(cache=True, inline="always")
-def _block_key(x, p, x0, inv_dx, grid_shape, nby, nbz):
-    """Linear block index of particle p's base cell, or -1 if its stencil would leave the
-    grid (or its position is not finite)."""
+def _block_key(x, p, x0, inv_dx, grid_shape, off, nby, nbz):
+    """Linear block index (local grid) of particle p's base cell, or -1 if its stencil would
+    leave the local grid (or its position is not finite)."""
     k = 0
     for a in range(3):
         X = (x[p, a] - x0[a]) * inv_dx
-        if not (X >= 0.5 and X < grid_shape[a] - 1.5):
+        if not (X >= 0.5 + off[a] and X < grid_shape[a] + off[a] - 1.5):
             return -1
-        b = int(X - 0.5) // BLOCK_CELLS  # X - 0.5 >= 0: truncation is floor
+        b = (int(X - 0.5) - off[a]) // BLOCK_CELLS  # X - 0.5 >= off >= 0: truncation is floor
         k = b if a == 0 else (k * (nby if a == 1 else nbz) + b)
     return k
 
 
 @njit(parallel=True, cache=True)
-def _count_keys(x, x0, inv_dx, grid_shape, nblocks3, key, counts, first_bad):
+def _count_keys(x, x0, inv_dx, grid_shape, off, nblocks3, key, counts, first_bad):
     """Per chunk c of the particles (counts.shape[0] equal chunks): key[p] (block of particle
     p, or -1), counts[c, k] (particles of chunk c in block k), first_bad[c] (first p with
     key -1, or n)."""
@@ -75,7 +79,7 @@ def _count_keys(x, x0, inv_dx, grid_shape, nblocks3, key, counts, first_bad):
         counts[c, :] = 0
         first_bad[c] = n
         for p in range(c * size, min(n, (c + 1) * size)):
-            k = _block_key(x, p, x0, inv_dx, grid_shape, nby, nbz)
+            k = _block_key(x, p, x0, inv_dx, grid_shape, off, nby, nbz)
             key[p] = k
             if k < 0:
                 if first_bad[c] == n:
@@ -98,7 +102,7 @@ def _place_keys(key, offsets, order):
 
 
 @njit(cache=True)
-def bin_particles(x, x0, inv_dx, grid_shape, nblocks3, block_start, order, block_slot,
+def bin_particles(x, x0, inv_dx, grid_shape, off, nblocks3, block_start, order, block_slot,
                   active_blocks, key, counts, first_bad):
     """Stable counting sort of particles by block, in parallel over counts.shape[0] equal
     chunks of particles (the result is the serial stable sort, whatever the thread count).
@@ -110,7 +114,7 @@ def bin_particles(x, x0, inv_dx, grid_shape, nblocks3, block_start, order, block
     n = x.shape[0]
     nb = nblocks3[0] * nblocks3[1] * nblocks3[2]
     nch = counts.shape[0]
-    _count_keys(x, x0, inv_dx, grid_shape, nblocks3, key, counts, first_bad)
+    _count_keys(x, x0, inv_dx, grid_shape, off, nblocks3, key, counts, first_bad)
     bad = n
     for c in range(nch):
         bad = min(bad, first_bad[c])
@@ -148,7 +152,7 @@ def _weights3(X):
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def p2g_scatter(x, v, C, tau, mass, vol0, order, block_start, active_blocks, n_active,
-                nblocks3, buf, x0, inv_dx, dt):
+                nblocks3, buf, x0, off, inv_dx, dt):
     """Particle to grid, part 1: each non-empty block scatters mass and APIC momentum plus
     the MLS stress impulse -dt vol0 (4 / dx^2) tau (x_i - x_p) of its particles (in sorted
     order) into its own buffer buf[slot] [BUF_NODES^3, 4] covering nodes
@@ -159,9 +163,9 @@ def p2g_scatter(x, v, C, tau, mass, vol0, order, block_start, active_blocks, n_a
     nby, nbz = nblocks3[1], nblocks3[2]
     for sl in prange(n_active):
         b = active_blocks[sl]
-        ox = (b // (nby * nbz)) * BLOCK_CELLS
-        oy = ((b // nbz) % nby) * BLOCK_CELLS
-        oz = (b % nbz) * BLOCK_CELLS
+        ox = (b // (nby * nbz)) * BLOCK_CELLS + off[0]
+        oy = ((b // nbz) % nby) * BLOCK_CELLS + off[1]
+        oz = (b % nbz) * BLOCK_CELLS + off[2]
         bb = buf[sl].reshape(-1)  # flat [BUF_NODES^3 * 4]: contiguous node fields
         for e in range(bb.shape[0]):
             bb[e] = 0.0
@@ -319,7 +323,7 @@ def grid_gather_update(buf, block_slot, nblocks3, grid, origin, dx, dt, gravity,
 
 
 @njit(parallel=True, cache=True, fastmath=G2P_FASTMATH)
-def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats):
+def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats):
     """Grid to particle: APIC velocity and affine field, advection (clamped to the domain
     lo..hi, m), F^E <- (I + dt C) F^E, Drucker-Prager return mapping, Kirchhoff stress.
 
@@ -339,6 +343,9 @@ def g2p(x, v, C, F, tau, grid, x0, inv_dx, dt, lo, hi, lam, mu, alpha, out_stats
             bx, fx, wx0, wx1, wx2 = _weights3((x[p, 0] - x0[0]) * inv_dx)
             by, fy, wy0, wy1, wy2 = _weights3((x[p, 1] - x0[1]) * inv_dx)
             bz, fz, wz0, wz1, wz2 = _weights3((x[p, 2] - x0[2]) * inv_dx)
+            bx -= off[0]
+            by -= off[1]
+            bz -= off[2]
             # Separable gather: v = sum w g and sum w g d_b = sum w g n_b - f_b v, with the
             # node offset n in {0, 1, 2} per axis; sums over z, then y, then x.
             wz1b, wz2b = wz1, 2.0 * wz2  # weight * n along z

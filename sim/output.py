@@ -14,7 +14,10 @@ frame; `time` is written last, so len(time) is the number of complete frames):
     particle_type  [n] int32 (PARTICLE_TYPE_SAND)
     material       [n] float32, friction angle in degrees
     attrs: units (JSON), dt_s, dt_mode, output_interval_s, bounds_m, particle_spacing_m,
-           cell_size_m, n_particles, dim, scene_toml, material_table (JSON), format
+           cell_size_m, n_particles, dim, scene_toml, material_table (JSON), format, and
+           from `minority sim` (sim.ranks) also ranks, rebalance_every
+
+One file at any rank count: rank 0 gathers every rank's particles per frame (sim.ranks).
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ class TrajectoryWriter:
     """Append frames of one run to an HDF5 file. Use as a context manager."""
 
     def __init__(self, path: str | Path, scene: Scene, n: int, *, dt_s: float,
-                 dt_mode: str) -> None:
+                 dt_mode: str, attrs: dict | None = None) -> None:
         self.path = Path(path)
         self.n = n
         self.frames = 0
@@ -77,6 +80,8 @@ class TrajectoryWriter:
             "model": "drucker_prager", "density_kg_m3": mat.density_kg_m3,
             "youngs_modulus_pa": mat.youngs_modulus_pa, "poisson_ratio": mat.poisson_ratio,
             "friction_angle_deg": mat.friction_angle_deg, "dp_cone": mat.dp_cone.value})
+        for key, value in (attrs or {}).items():  # e.g. ranks, rebalance_every of a rank run
+            a[key] = value
         f.swmr_mode = True
         f.flush()
 

@@ -28,7 +28,8 @@ def test_subcommand_help(name, capsys):
 
 def test_network_flags_are_shared():
     parser = build_parser()
-    for name, extra in [("serve", ["--spec", "s.json"]), ("record", []), ("replay", ["x.mcap"])]:
+    for name, extra in [("serve", ["--spec", "s.json"]), ("record", []), ("replay", ["x.mcap"]),
+                        ("sim", ["tiny"])]:
         args = parser.parse_args([name, *extra, "--connect", "tcp/127.0.0.1:1", "--listen",
                                   "tcp/127.0.0.1:2", "--config", "z.json5"])
         assert args.connect == ["tcp/127.0.0.1:1"] and args.listen == ["tcp/127.0.0.1:2"]

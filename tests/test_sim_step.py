@@ -203,7 +203,8 @@ def test_parallel_counting_sort_is_the_stable_sort():
     rng = np.random.default_rng(3)
     x = ps.x[rng.permutation(ps.n)]  # scrambled storage order
     shape = np.array(g.shape, np.int64)
-    bad, n_active = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, b.nblocks3,
+    off = np.zeros(3, np.int64)
+    bad, n_active = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, off, b.nblocks3,
                                           b.block_start, b.order, b.block_slot,
                                           b.active_blocks, b.key, b.counts, b.first_bad)
     assert bad == -1
@@ -222,7 +223,7 @@ def test_parallel_counting_sort_is_the_stable_sort():
     assert (b.block_slot[counts == 0] == -1).all()
     # the first particle (in storage order) whose stencil leaves the grid is reported
     x[[4000, 9000]] = [-1.0, 0.0, 0.0]
-    bad, _ = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, b.nblocks3, b.block_start,
+    bad, _ = kernels.bin_particles(x, g.x0, 1.0 / g.dx, shape, off, b.nblocks3, b.block_start,
                                    b.order, b.block_slot, b.active_blocks, b.key, b.counts,
                                    b.first_bad)
     assert bad == 4000

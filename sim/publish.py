@@ -1,0 +1,475 @@
+"""What a rank publishes: the spec's fields of the particles in its regions of interest, at
+the steps its schedule asks for, without ever blocking the simulation.
+
+* `cull` picks the particles inside the requested regions (all when none) and computes only
+  the requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
+  `particle_bytes`.
+* `RankPublisher` opens the rank's zenoh session (a client: no server -> it runs on and
+  says why once), declares the rank's liveliness token, fetches the spec (a zenoh get with
+  a timeout; a `--spec` file is the fallback), follows spec updates, and hands encoded
+  messages to one sender thread through a bounded outbox. A full outbox drops its oldest
+  chunk; nothing the simulation thread does waits on the network. Every drop is counted
+  (`PublishStats`) and reported in the rank's `rank_done` event.
+* The sender thread puts with congestion control BLOCK at data priority, so a slow server
+  (or network) pushes back into the counted outbox rather than into zenoh's silent drops,
+  and chunks and events leave in the order they were made (a `rank_done` never overtakes
+  the rank's last chunk). zenoh gives a blocked put up after the transport's
+  `block/wait_before_close` (BLOCK_TIMEOUT_S, set explicitly here) and then drops data on
+  that link without telling the sender until the receiver reads again. So a put that took
+  that long is a *stall*: it and every chunk after it count as dropped (not put) until a
+  spec query to the server is answered again (a probe every PROBE_INTERVAL_S).
+* With a record path, the sender thread also writes every message it takes from the
+  outbox (spec, chunks, events, as published) to that rank's MCAP file.
+"""
+
+from __future__ import annotations
+
+import collections
+import copy
+import json
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+import zenoh
+
+from protocol import keys
+from protocol.errors import ProtocolError, SpecError
+from protocol.messages import Chunk, Event, EventKind, decode_as
+from protocol.session import NetworkOptions, QoS, Role, make_config, put
+from protocol.spec import DataRequest, Region, Spec
+from sim.state import ParticleState
+
+SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
+DRAIN_TIMEOUT_S = 5.0  # at close: wait this long for the outbox to empty
+OUTBOX_CHUNKS = 4  # chunks queued for the sender at most (the oldest is dropped)
+OUTBOX_BYTES = 256 * 1024 * 1024  # and at most this many bytes of them
+SENDER_POLL_S = 0.1
+BLOCK_TIMEOUT_S = 2.0  # zenoh gives a blocked put up after this long (our client sessions)
+BLOCK_TIMEOUT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+STALL_FRACTION = 0.9  # a put that took this share of the block timeout was given up
+PROBE_INTERVAL_S = 1.0  # while stalled: ask the server for the spec this often
+PROBE_TIMEOUT_S = 1.0
+
+
+@dataclass(frozen=True)
+class SimField:
+    """A particle field the simulation can send: [n] or [n, components], its wire dtype."""
+
+    components: int  # 1: [n]
+    dtype: str
+    unit: str
+    description: str
+
+
+SIM_FIELDS: dict[str, SimField] = {
+    "displacement": SimField(3, "<f4", "m", "x - x0, from the initial position"),
+    "displacement_magnitude": SimField(1, "<f4", "m", "|x - x0|"),
+    "velocity": SimField(3, "<f4", "m/s", "particle velocity"),
+    "velocity_magnitude": SimField(1, "<f4", "m/s", "|v|"),
+    "pressure": SimField(1, "<f4", "Pa", "-tr(tau) / 3, Kirchhoff mean stress (compression > 0)"),
+    "id": SimField(1, "<i8", "1", "original particle id (row of the HDF5 output)"),
+}
+POSITION_BYTES = 12  # positions [n, 3] float32
+
+
+def particle_bytes(fields) -> int:
+    """Wire bytes per particle of a chunk with positions and `fields` (known ones)."""
+    return POSITION_BYTES + sum(SIM_FIELDS[f].components * np.dtype(SIM_FIELDS[f].dtype).itemsize
+                                for f in fields if f in SIM_FIELDS)
+
+
+def inside(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
+    """Indices of the particles x [n, 3] (m) inside any of the boxes (bounds included)."""
+    keep = np.zeros(x.shape[0], dtype=bool)
+    for r in regions:
+        keep |= np.all((x >= r.lo_m) & (x <= r.hi_m), axis=1)
+    return np.flatnonzero(keep)
+
+
+def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
+    """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
+    field the simulation knows (unknown names are skipped; the caller reports them), of
+    the m particles inside the request's regions, or of all n when it has none."""
+    idx = None if request.regions is None else inside(ps.x, request.regions)
+
+    def take(a: np.ndarray) -> np.ndarray:
+        return a if idx is None else a[idx]
+
+    x = take(ps.x)
+    out = {"positions": x.astype(np.float32)}
+    for name in request.fields:
+        if name in ("displacement", "displacement_magnitude"):
+            d = x - take(ps.x0)
+            out[name] = (d if name == "displacement" else np.linalg.norm(d, axis=1)).astype(np.float32)
+        elif name in ("velocity", "velocity_magnitude"):
+            v = take(ps.v)
+            out[name] = (v if name == "velocity" else np.linalg.norm(v, axis=1)).astype(np.float32)
+        elif name == "pressure":
+            tau = take(ps.tau)
+            out[name] = (-(tau[:, 0, 0] + tau[:, 1, 1] + tau[:, 2, 2]) / 3.0).astype(np.float32)
+        elif name == "id":
+            out[name] = take(ps.pid).astype(np.int64)
+    return out
+
+
+def record_path(path: Path, rank: int) -> Path:
+    """A rank's MCAP record: `path` for rank 0, `{stem}.rank{r}{suffix}` for rank r > 0."""
+    path = Path(path)
+    return path if rank == 0 else path.with_name(f"{path.stem}.rank{rank}{path.suffix}")
+
+
+@dataclass
+class PublishOptions:
+    network: NetworkOptions = field(default_factory=NetworkOptions)
+    spec_file: Path | None = None  # the spec to follow when no server serves one
+    record: Path | None = None  # this rank's MCAP record of what it publishes
+    spec_timeout_s: float = SPEC_TIMEOUT_S
+    drain_timeout_s: float = DRAIN_TIMEOUT_S
+    outbox_chunks: int = OUTBOX_CHUNKS
+    outbox_bytes: int = OUTBOX_BYTES
+
+
+@dataclass
+class PublishStats:
+    """Counts of one rank's publishing; `dropped_*` are chunks the schedule asked for that
+    did not leave the rank."""
+
+    scheduled: int = 0  # chunks the spec's schedule asked for
+    sent: int = 0  # handed to zenoh (and recorded)
+    recorded: int = 0  # messages written to the rank's MCAP record
+    dropped_no_server: int = 0  # no zenoh session (nothing to send to)
+    dropped_outbox: int = 0  # the outbox was full: the server (or the disk) fell behind
+    dropped_at_exit: int = 0  # still in the outbox when the drain timeout ran out
+    dropped_stalled: int = 0  # given up by zenoh, or not put while the link was stalled
+    failed: int = 0  # zenoh refused the put (e.g. the session closed)
+    stalls: int = 0  # times a put blocked for the whole block timeout
+    bytes_sent: int = 0  # chunk payload bytes handed to zenoh
+    particles_sent: int = 0
+    particles_total: int = 0  # particles on the rank at the scheduled steps (before culling)
+    prepare_s: float = 0.0  # simulation-thread time culling, encoding, queueing, s
+    missing_fields: list[str] = field(default_factory=list)  # requested, not known here
+
+    @property
+    def dropped(self) -> int:
+        return (self.dropped_no_server + self.dropped_outbox + self.dropped_at_exit
+                + self.dropped_stalled + self.failed)
+
+
+@dataclass
+class _Item:
+    key: str
+    payload: bytearray
+    chunk: bool
+    particles: int = 0
+    publish: bool = True  # False: only recorded (the spec the rank follows)
+
+
+class Outbox:
+    """A bounded FIFO between the simulation thread and the sender: at most `max_chunks`
+    chunks and `max_bytes` of chunk payload (but always the newest chunk); a full outbox
+    drops its oldest chunk (the newest data is what a viewer wants). Control messages
+    (spec, events) are few and small and always enter."""
+
+    def __init__(self, max_chunks: int, max_bytes: int):
+        self.max_chunks, self.max_bytes = max_chunks, max_bytes
+        self._items: collections.deque[_Item] = collections.deque()
+        self._cond = threading.Condition()
+        self._chunks = 0
+        self._bytes = 0
+        self.busy = False  # the sender holds an item
+
+    def put(self, item: _Item) -> int:
+        """Enqueue; returns how many chunks were dropped to make room."""
+        dropped = 0
+        with self._cond:
+            if item.chunk:
+                while self._chunks and (self._chunks >= self.max_chunks
+                                        or self._bytes + len(item.payload) > self.max_bytes):
+                    self._drop_oldest_chunk()
+                    dropped += 1
+                self._chunks += 1
+                self._bytes += len(item.payload)
+            self._items.append(item)
+            self._cond.notify()
+        return dropped
+
+    def _drop_oldest_chunk(self) -> None:
+        for i, old in enumerate(self._items):
+            if old.chunk:
+                del self._items[i]
+                self._chunks -= 1
+                self._bytes -= len(old.payload)
+                return
+
+    def take(self, timeout: float) -> _Item | None:
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            if item.chunk:
+                self._chunks -= 1
+                self._bytes -= len(item.payload)
+            self.busy = True
+            return item
+
+    def done(self) -> None:
+        with self._cond:
+            self.busy = False
+            self._cond.notify_all()
+
+    def wait_empty(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._items or self.busy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+    def discard_chunks(self) -> int:
+        with self._cond:
+            n = self._chunks
+            self._items = collections.deque(i for i in self._items if not i.chunk)
+            self._chunks = self._bytes = 0
+            return n
+
+
+# Data priority and BLOCK: see the module docstring (the outbox is the pressure valve).
+SENDER_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
+
+
+class RankPublisher:
+    """One rank's publishing; see the module docstring. Call `connect`, then `fetch_spec`,
+    then `start`; `publish` at every step; `close` at the end."""
+
+    def __init__(self, rank: int, ranks: int, spacing_m: float,
+                 bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]],
+                 options: PublishOptions, log: TextIO | None = None):
+        self.rank, self.ranks = rank, ranks
+        self.spacing_m, self.bounds_m = spacing_m, bounds_m
+        self.options = options
+        self.log = log if log is not None else sys.stderr
+        self.session = None
+        self.spec: Spec | None = None
+        self.run: str | None = None
+        self.stats = PublishStats()
+        self.no_server_reason = ""
+        self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes)
+        self._token = None
+        self._spec_sub = None
+        self._writer = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # stats touched by both threads
+        self._stall_s = STALL_FRACTION * BLOCK_TIMEOUT_S
+        self._stalled = False
+        self._last_probe = 0.0
+
+    # --- start ------------------------------------------------------------------------
+    def connect(self, wait_s: float = 0.0) -> bool:
+        """Open the rank's client session (keep trying for wait_s seconds); False, with the
+        reason in no_server_reason, when no server is reachable."""
+        opts = copy.copy(self.options.network)
+        opts.connect_timeout_s = wait_s
+        try:
+            cfg = make_config(opts, Role.CLIENT)
+            if opts.config is None:  # an explicit choice; a --config file keeps its own
+                cfg.insert_json5(BLOCK_TIMEOUT_KEY, str(int(BLOCK_TIMEOUT_S * 1e6)))
+            self._stall_s = STALL_FRACTION * json.loads(cfg.get_json(BLOCK_TIMEOUT_KEY)) * 1e-6
+            self.session = zenoh.open(cfg)
+        except zenoh.ZError as exc:
+            where = ", ".join(opts.connect) or "the default endpoint"
+            why = str(exc).split("  at ")[0].strip()  # drop zenoh's source location
+            self.no_server_reason = f"no zenoh server reachable at {where} ({why[:160]})"
+            return False
+        return True
+
+    def fetch_spec(self, run: str) -> Spec | None:
+        """The spec the server serves for `run` (zenoh get with a timeout), else the spec
+        file of the options (its run must match), else None."""
+        if self.session is not None:
+            for reply in self.session.get(keys.spec(run), timeout=self.options.spec_timeout_s):
+                if reply.ok is None:
+                    continue
+                try:
+                    return decode_as(reply.ok.payload.to_bytes(), Spec)
+                except (ProtocolError, SpecError) as exc:
+                    print(f"rank {self.rank}: ignoring a malformed spec from the server: {exc}",
+                          file=self.log)
+        if self.options.spec_file is not None:
+            spec = Spec.load(self.options.spec_file)
+            if spec.run != run:
+                raise SpecError(f"{self.options.spec_file}: spec run {spec.run!r} is not the "
+                                f"run {run!r}")
+            return spec
+        return None
+
+    def start(self, run: str, spec: Spec | None) -> None:
+        """Declare the liveliness token, follow spec updates, start the sender thread."""
+        self.run, self.spec = run, spec
+        if self.options.record is not None:
+            from protocol.log import LogWriter
+
+            self._writer = LogWriter(record_path(self.options.record, self.rank), metadata={
+                "run": run, "rank": str(self.rank), "ranks": str(self.ranks), "side": "sim"})
+        if self.session is not None:
+            self._token = self.session.liveliness().declare_token(keys.rank_token(run, self.rank))
+            self._spec_sub = self.session.declare_subscriber(keys.spec(run), self._on_spec)
+        if spec is not None:  # the server serves the spec; the record notes which one we follow
+            self._outbox.put(_Item(keys.spec(run), spec.encode(), chunk=False, publish=False))
+        self._thread = threading.Thread(target=self._send_loop, name=f"minority-send-{self.rank}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _on_spec(self, sample) -> None:  # zenoh thread: decode, swap, note it in the record
+        try:
+            spec = decode_as(sample.payload.to_bytes(), Spec)
+        except (ProtocolError, SpecError):
+            return
+        if spec.run == self.run and spec != self.spec:
+            self.spec = spec
+            self._outbox.put(_Item(keys.spec(self.run), spec.encode(), chunk=False,
+                                   publish=False))
+
+    # --- per step -------------------------------------------------------------------------
+    def request(self, step: int, time_s: float) -> DataRequest | None:
+        spec = self.spec
+        return None if spec is None else spec.request(step, time_s)
+
+    def publish(self, step: int, time_s: float, ps: ParticleState) -> bool:
+        """If the spec schedules this step, cull, encode and queue this rank's chunk (an
+        empty one when no particle is in the regions, so the server's step completes).
+        Returns whether the step was scheduled."""
+        request = self.request(step, time_s)
+        if request is None:
+            return False
+        t0 = time.perf_counter()
+        with self._lock:
+            self.stats.scheduled += 1
+            self.stats.particles_total += ps.n
+            if self.session is None and self._writer is None:  # nowhere to go: not built
+                self.stats.dropped_no_server += 1
+                self.stats.prepare_s += time.perf_counter() - t0
+                return True
+        for name in request.fields:
+            if name not in SIM_FIELDS and name not in self.stats.missing_fields:
+                self.stats.missing_fields.append(name)
+                print(f"rank {self.rank}: the spec asks for field {name!r}, which the simulation "
+                      f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
+        fields = cull(ps, request)
+        chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
+                      self.bounds_m, fields)
+        item = _Item(keys.chunk(self.run, step, self.rank), chunk.encode(), True, chunk.count)
+        dropped = self._outbox.put(item)
+        with self._lock:
+            self.stats.dropped_outbox += dropped
+            self.stats.prepare_s += time.perf_counter() - t0
+        return True
+
+    def event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
+        if self.run is None:
+            return
+        ev = Event(self.run, kind, self.rank, message[:4000], detail or {})
+        self._outbox.put(_Item(keys.event(self.run), ev.encode(), chunk=False))
+
+    # --- the sender thread ------------------------------------------------------------------
+    def _send_loop(self) -> None:
+        while not self._stop.is_set():
+            item = self._outbox.take(SENDER_POLL_S)
+            if item is None:
+                continue
+            try:
+                outcome = self._send(item) if item.publish else "local"
+                if self._writer is not None:
+                    self._writer.write_payload(item.key, bytes(item.payload))
+                with self._lock:
+                    if self._writer is not None:
+                        self.stats.recorded += 1
+                    if item.chunk:
+                        if outcome == "sent":
+                            self.stats.sent += 1
+                            self.stats.bytes_sent += len(item.payload)
+                            self.stats.particles_sent += item.particles
+                        else:
+                            name = f"dropped_{outcome}" if outcome != "failed" else "failed"
+                            setattr(self.stats, name, getattr(self.stats, name) + 1)
+            finally:
+                self._outbox.done()
+
+    def _send(self, item: _Item) -> str:
+        """Put one message; returns "sent", "no_server", "stalled" or "failed"."""
+        if self.session is None:
+            return "no_server"
+        if self._stalled and not self._probe():
+            return "stalled"
+        t0 = time.perf_counter()
+        try:
+            put(self.session, item.key, item.payload, SENDER_QOS)
+        except zenoh.ZError:
+            return "failed"
+        if time.perf_counter() - t0 >= self._stall_s:  # zenoh gave this put up
+            with self._lock:
+                self.stats.stalls += 1
+            if not self._stalled:
+                print(f"rank {self.rank}: the server stopped reading (a put blocked "
+                      f"{time.perf_counter() - t0:.1f} s); dropping chunks until it answers "
+                      f"again", file=self.log, flush=True)
+            self._stalled = True
+            self._last_probe = time.monotonic()
+            return "stalled"
+        return "sent"
+
+    def _probe(self) -> bool:
+        """While stalled: at most every PROBE_INTERVAL_S, ask the server for the spec; an
+        answer means it reads again."""
+        if time.monotonic() - self._last_probe < PROBE_INTERVAL_S:
+            return False
+        self._last_probe = time.monotonic()
+        try:
+            replies = self.session.get(keys.spec(self.run), timeout=PROBE_TIMEOUT_S)
+            self._stalled = not any(r.ok is not None for r in replies)
+        except zenoh.ZError:
+            return False
+        return not self._stalled
+
+    # --- end ----------------------------------------------------------------------------------
+    def close(self, detail: dict | None = None) -> PublishStats:
+        """Drain the outbox (at most drain_timeout_s), publish `rank_done` with the counts
+        (and `detail`), close the record and the session. Returns the final counts."""
+        delivered = self._thread is None or self._outbox.wait_empty(self.options.drain_timeout_s)
+        if not delivered:
+            with self._lock:
+                self.stats.dropped_at_exit += self._outbox.discard_chunks()
+        if self._thread is not None:
+            self.event(EventKind.RANK_DONE, f"rank {self.rank} done",
+                       {**(detail or {}), **self.summary()})
+            if not self._outbox.wait_empty(self.options.drain_timeout_s if delivered else 0.0):
+                print(f"rank {self.rank}: the rank_done event could not be sent (the server "
+                      f"does not read)", file=self.log)
+            self._stop.set()
+            self._thread.join(timeout=self.options.drain_timeout_s)
+        if self.session is not None:
+            for handle in (self._spec_sub, self._token):
+                if handle is not None:
+                    handle.undeclare()
+            self.session.close()  # returns once a blocked put gives up (zenoh's bound)
+        if self._thread is not None:
+            self._thread.join(timeout=self.options.drain_timeout_s)
+        if self._writer is not None and (self._thread is None or not self._thread.is_alive()):
+            self._writer.close()
+        return self.stats
+
+    def summary(self) -> dict:
+        with self._lock:
+            d = asdict(self.stats)
+        d["dropped"] = self.stats.dropped
+        d["prepare_s"] = round(d["prepare_s"], 6)
+        return d

@@ -1,0 +1,314 @@
+"""Run a scene on MPI ranks (one rank needs no launcher): slab decomposition, one HDF5 file,
+publishing to the render server, lifecycle events. What `minority sim` calls.
+
+Order on every rank: load the scene, build its slab (`sim.decomp.SlabSimulator`), open its
+zenoh session and fetch the spec (ranks check that they follow the same spec; rank 0's wins
+otherwise), `run_start` (rank 0), then per step: MPM step, publish if scheduled; per output
+frame: rank 0 gathers and writes. At the end each rank drains its outbox and publishes
+`rank_done` with its counts; rank 0 gathers the totals. An error on one rank that the others
+cannot see (e.g. a failed write) is published as an `error` event, then MPI_Abort ends the
+run; a non-finite value or an unstable time step is seen by every rank at the same step.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from protocol.messages import EventKind
+from sim.decomp import DEFAULT_REBALANCE_EVERY, SlabSimulator
+from sim.driver import NonFiniteError, TimeStepError
+from sim.output import TrajectoryWriter
+from sim.runner import PROGRESS_EVERY_S, _frame_times
+from sim.scene import load_scene
+
+# Environment variables that MPI launchers set in the processes they start (MPICH/Hydra,
+# PMIx launchers such as Open MPI's and Slurm's srun --mpi=pmix, Open MPI's own).
+LAUNCHER_ENV = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE")
+# When we start mpiexec ourselves: MPICH polls in a busy loop while waiting; with more
+# processes than free cores that starves the rank it waits for. Throttled polling sleeps a
+# microsecond after 4096 idle polls (unless the user chose otherwise).
+RELAUNCH_ENV = {"MPIR_CVAR_CH4_PROGRESS_THROTTLE": "1"}
+
+
+def under_launcher() -> bool:
+    """Whether this process was started by an MPI launcher (mpiexec, srun)."""
+    return any(name in os.environ for name in LAUNCHER_ENV)
+
+
+def mpiexec_path() -> Path | None:
+    """The mpiexec next to this Python (the one of the `mpich` wheel), else on PATH."""
+    here = Path(sys.executable).parent / "mpiexec"
+    if here.exists():
+        return here
+    found = shutil.which("mpiexec")
+    return Path(found) if found else None
+
+
+def relaunch(ranks: int, argv: list[str]) -> int:
+    """Run `python -m minority ARGV` under `mpiexec -n ranks`; returns its exit status."""
+    mpiexec = mpiexec_path()
+    if mpiexec is None:
+        print("minority sim: error: --ranks needs mpiexec (pip install mpich), none found next "
+              f"to {sys.executable} or on PATH", file=sys.stderr)
+        return 1
+    env = {**RELAUNCH_ENV, **os.environ}
+    cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "minority", *argv]
+    return subprocess.call(cmd, env=env)
+
+
+@dataclass
+class RankRunConfig:
+    scene_path: Path
+    out: Path | None  # HDF5 trajectory (rank 0 writes it); None: no HDF5
+    dt: float | None = None  # fixed time step, s; None: CFL
+    threads: int | None = None  # numba threads per rank; None: cores / ranks on the node
+    rebalance_every: int = DEFAULT_REBALANCE_EVERY  # steps; 0: never
+    progress: bool = True
+    publish: object | None = None  # sim.publish.PublishOptions; None: no network, no record
+    run: str | None = None  # run id of the keys minority/{run}/...; None: the scene name
+    wait_s: float = 0.0  # keep trying to reach the server this long at start, s
+    max_steps: int | None = None  # stop after this many steps (benchmarks, tests)
+
+
+@dataclass
+class RankRunSummary:
+    """The run as rank 0 sees it (totals over ranks); other ranks get their own."""
+
+    out_path: Path | None
+    particles: int
+    ranks: int
+    steps: int
+    frames: int
+    sim_time_s: float
+    wall_s: float  # from scene load to the end, s
+    loop_wall_s: float  # stepping, publishing and output, s
+    step_wall_s: float  # inside MPM phases and exchanges, slowest rank, s
+    particle_steps_per_s: float  # particles * steps / step_wall_s
+    clamped_particle_steps: int
+    threads: int
+    rebalances: int
+    migrated: int  # particles received from other ranks, all ranks
+    run: str | None
+    spec_version: int | None
+    publish: dict = field(default_factory=dict)  # PublishStats summed over ranks
+    rank_particles: list[int] = field(default_factory=list)  # per rank, at the end
+    rank_compute_cpu_s: list[float] = field(default_factory=list)  # per rank: PhaseTimes
+
+
+def _default_threads(comm) -> int:
+    from mpi4py import MPI
+
+    local = comm.Split_type(MPI.COMM_TYPE_SHARED).Get_size()
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, (cpus or 1) // local)
+
+
+def _spec_digest(spec) -> str:
+    text = "" if spec is None else json.dumps(spec.to_dict(), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) -> RankRunSummary:
+    """Simulate the scene on the ranks of `comm` (MPI.COMM_WORLD; one rank without a
+    launcher). Collective: every rank calls it with the same config."""
+    import numba
+    from mpi4py import MPI
+
+    comm = comm if comm is not None else MPI.COMM_WORLD
+    rank, ranks = comm.Get_rank(), comm.Get_size()
+    log = stream if stream is not None else sys.stderr
+    wall0 = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if config.progress and rank == 0:
+            print(msg, file=log, flush=True)
+
+    scene = load_scene(config.scene_path)
+    threads = config.threads if config.threads is not None else (
+        _default_threads(comm) if ranks > 1 else None)
+    sim = SlabSimulator(scene, fixed_dt=config.dt, threads=threads, comm=comm,
+                        rebalance_every=config.rebalance_every)
+    n_total = sim.n_total
+    frames = _frame_times(scene.duration_s, scene.output_interval_s)
+    dt0 = config.dt if config.dt is not None else sim.stable_dt()
+    publisher, run, spec = _start_publishing(config, scene, sim, comm, log)
+    say(f"sim: scene {scene.name}: {n_total} particles on {ranks} rank(s) "
+        f"(x-blocks per rank {list(map(int, sim.starts[1:] - sim.starts[:-1]))}), "
+        f"{len(frames)} frames, dt {dt0:.3g} s ({'fixed' if config.dt is not None else 'cfl'})")
+    if publisher is not None and rank == 0:
+        publisher.event(EventKind.RUN_START, f"sim of {scene.name} on {ranks} rank(s)", {
+            "scene": scene.name, "ranks": ranks, "particles": n_total,
+            "spec_version": spec.version if spec else None,
+            "fields": list(spec.fields) if spec else [],
+            "regions": [r.name for r in spec.regions] if spec else [],
+            "rebalance_every": config.rebalance_every, "threads": numba.get_num_threads()})
+
+    writer = None
+    loop0 = time.perf_counter()
+    try:
+        if rank == 0 and config.out is not None:
+            writer = TrajectoryWriter(config.out, scene, n_total, dt_s=dt0,
+                                      dt_mode="fixed" if config.dt is not None else "cfl",
+                                      attrs={"ranks": ranks,
+                                             "rebalance_every": config.rebalance_every})
+        written = _step_loop(sim, config, frames, writer, publisher, say)
+    except (NonFiniteError, TimeStepError) as exc:  # every rank saw it at the same step
+        _fail(publisher, exc, rank)
+        raise
+    except BaseException as exc:
+        _fail(publisher, exc, rank)
+        if ranks > 1:
+            print(f"minority sim: rank {rank}: error: {exc}; aborting all ranks", file=sys.stderr,
+                  flush=True)
+            comm.Abort(1)
+        raise
+    finally:
+        if writer is not None:
+            writer.close()
+    loop_wall = time.perf_counter() - loop0
+    return _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, say)
+
+
+def _start_publishing(config, scene, sim, comm, log):
+    """Connect, agree on the run id and the spec, start every rank's publisher (collective).
+    Returns (publisher or None, run, spec)."""
+    if config.publish is None:
+        return None, config.run, None
+    from protocol.spec import Spec
+    from sim.publish import RankPublisher
+
+    rank, ranks = comm.Get_rank(), comm.Get_size()
+    bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))
+    pub = RankPublisher(rank, ranks, scene.particle_spacing_m, bounds, config.publish, log)
+    pub.connect(config.wait_s)
+    run = config.run or scene.name
+    try:
+        spec = pub.fetch_spec(run)
+        error = None
+    except Exception as exc:  # a bad spec file: every rank reads the same one
+        spec, error = None, exc
+    errors = comm.allgather(None if error is None else str(error))
+    if any(errors):
+        pub.close()
+        raise ValueError(next(e for e in errors if e))
+    digests = comm.allgather(_spec_digest(spec))
+    if len(set(digests)) > 1:  # e.g. the spec changed between the ranks' gets
+        d = comm.bcast(spec.to_dict() if spec is not None else None, root=0)
+        spec = Spec.from_dict(d) if d is not None else None
+    reasons = comm.gather(pub.no_server_reason, root=0)
+    if rank == 0:
+        missing = [r for r, why in enumerate(reasons) if why]
+        if missing:
+            print(f"minority sim: {reasons[missing[0]]}: running without publishing "
+                  f"(rank{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))})",
+                  file=log, flush=True)
+        if spec is None:
+            print(f"minority sim: no spec for run {run!r} (no server serves one, no --spec; "
+                  f"--run names the server's run): nothing is scheduled, nothing is published",
+                  file=log, flush=True)
+        else:
+            regions = ", ".join(r.name for r in spec.regions) or "none (every particle)"
+            print(f"minority sim: run {run!r}, spec version {spec.version}: "
+                  f"{len(spec.views)} view(s), fields {', '.join(spec.fields)}, regions "
+                  f"{regions}", file=log, flush=True)
+    pub.start(run, spec)
+    return pub, run, spec
+
+
+def _step_loop(sim, config, frames, writer, publisher, say) -> int:
+    """Step through the output frames; publish at scheduled steps. Returns frames written."""
+    n_total = sim.n_total
+    if publisher is not None:
+        publisher.publish(sim.step_count, sim.time_s, sim.particles)
+    last_print = time.perf_counter()
+    start = last_print
+    written = 0
+    for k, t_frame in enumerate(frames):
+        while not sim.reached(t_frame):
+            if config.max_steps is not None and sim.step_count >= config.max_steps:
+                return written
+            sim.advance_to(t_frame, max_steps=1)
+            if publisher is not None:
+                publisher.publish(sim.step_count, sim.time_s, sim.particles)
+            now = time.perf_counter()
+            if now - last_print > PROGRESS_EVERY_S:
+                say(_progress(sim, n_total, now - start))
+                last_print = now
+        fields = sim.gather_fields()
+        diag = sim.diagnostics()
+        if writer is not None:
+            writer.write_frame(time_s=sim.time_s, step=sim.step_count, fields=fields,
+                               kinetic_energy_j=diag.kinetic_energy_j,
+                               momentum=diag.momentum_kg_m_s)
+        written += 1
+        say(f"frame {k + 1}/{len(frames)}: " + _progress(sim, n_total, time.perf_counter() - start))
+        last_print = time.perf_counter()
+    return written
+
+
+def _progress(sim, n_total: int, wall_s: float) -> str:
+    rate = n_total * sim.step_count / wall_s if wall_s > 0 else 0.0
+    return (f"step {sim.step_count}, t = {sim.time_s:.4f} s, dt = {sim.stable_dt():.3g} s, "
+            f"max speed {sim.max_speed_m_s:.3g} m/s, {rate:.3g} particle-steps/s")
+
+
+def _fail(publisher, exc: BaseException, rank: int) -> None:
+    if publisher is None:
+        return
+    publisher.event(EventKind.ERROR, f"rank {rank}: {type(exc).__name__}: {exc}",
+                    {"error": type(exc).__name__})
+    publisher.options.drain_timeout_s = min(publisher.options.drain_timeout_s, 1.0)
+    publisher.close({"error": str(exc)[:1000]})
+
+
+def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, say):
+    import numba
+    from mpi4py import MPI
+
+    ranks = comm.Get_size()
+    step_wall = comm.allreduce(sim.times.total, op=MPI.MAX)
+    detail = {"steps": sim.step_count, "particles": sim.particles.n,
+              "step_wall_s": round(sim.times.total, 6), "loop_wall_s": round(loop_wall, 6),
+              "phases_s": {k: round(getattr(sim.times, k), 6)
+                           for k in ("bin", "p2g", "grid", "g2p", "comm", "compute_cpu")},
+              "migrated": sim.migrated, "clamped_particle_steps": sim.clamp_count}
+    if publisher is not None:
+        publisher.close(detail)
+    pub_total: dict = {}
+    parts = comm.allgather(publisher.summary() if publisher is not None else None)
+    if parts[0] is not None:
+        for part in parts:
+            for key, value in part.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    if key == "prepare_s":  # the slowest rank's share is what costs time
+                        pub_total[key] = max(pub_total.get(key, 0.0), value)
+                    else:
+                        pub_total[key] = pub_total.get(key, 0) + value
+        pub_total["missing_fields"] = sorted({f for p in parts for f in p["missing_fields"]})
+    n_total = sim.n_total
+    summary = RankRunSummary(
+        out_path=config.out, particles=n_total, ranks=ranks, steps=sim.step_count,
+        frames=written, sim_time_s=sim.time_s, wall_s=time.perf_counter() - wall0,
+        loop_wall_s=loop_wall, step_wall_s=step_wall,
+        particle_steps_per_s=n_total * sim.step_count / step_wall if step_wall > 0 else 0.0,
+        clamped_particle_steps=sim.total_count(sim.clamp_count),
+        threads=numba.get_num_threads(), rebalances=sim.rebalances,
+        migrated=sim.total_count(sim.migrated), run=run,
+        spec_version=spec.version if spec is not None else None, publish=pub_total,
+        rank_particles=comm.allgather(sim.particles.n),
+        rank_compute_cpu_s=comm.allgather(sim.times.compute_cpu))
+    if pub_total:
+        say(f"published: {pub_total['sent']} of {pub_total['scheduled']} scheduled chunks sent, "
+            f"{pub_total['dropped']} dropped, {pub_total['bytes_sent'] / 1e6:.3g} MB, "
+            f"{pub_total['particles_sent']} of {pub_total['particles_total']} particles"
+            + (f", {pub_total['recorded']} messages recorded" if pub_total["recorded"] else ""))
+    return summary

@@ -29,7 +29,7 @@ from gns.metrics import deposit, relative_errors
 from gns.rollout import initial_state, rollout
 from gns.runtime import tune_allocator
 from gns.train import load_checkpoint
-from sim.scene import builtin_scene_path, load_scene
+from sim.scene import load_scene, scene_path
 
 # coarse grids of the column_13k geometry: (cell m, particles per cell per axis); the domain is
 # rounded up to whole cells (the column and channel width are unchanged)
@@ -74,16 +74,16 @@ def main() -> None:
     tune_allocator()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    scene_path = builtin_scene_path(args.scene) if not Path(args.scene).exists() else Path(args.scene)
-    scene = load_scene(scene_path)
+    path = scene_path(args.scene)
+    scene = load_scene(path)
     target_h5 = args.out / f"{scene.name}_target.h5"
-    target_s = run_mpm(scene_path, target_h5, args.threads)
+    target_s = run_mpm(path, target_h5, args.threads)
     ref = deposit(positions(target_h5))
     rows = [{"oracle": f"target MPM dx={scene.cell_size_m}", "particles": positions(
         target_h5).shape[1], "run_s": target_s, **{f"{k}_error": 0.0 for k in (
             "runout", "height", "displacement_range")}}]
     if not args.no_mpm:
-        text = scene_path.read_text()
+        text = path.read_text()
         for cell, ppc in COARSE:
             p = args.out / f"{scene.name}_dx{cell}_ppc{ppc}.toml"
             p.write_text(coarse_scene(text, cell, ppc, scene.size_m))
@@ -96,7 +96,7 @@ def main() -> None:
     for ck in args.checkpoints:
         model, meta = load_checkpoint(ck)
         st = meta["stats"]
-        init = initial_state(scene_path, st["particle_spacing_m"], st["frame_interval_s"],
+        init = initial_state(path, st["particle_spacing_m"], st["frame_interval_s"],
                              model.config.input_velocities)
         frames = round(scene.duration_s / st["frame_interval_s"])
         t0 = time.perf_counter()

@@ -48,25 +48,30 @@ def find_events(positions: np.ndarray, frame_interval_s: float) -> Events:
                   float(scale[peak]), scale, ke)
 
 
+def _frames(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> slice:
+    """The frames whose times lie in [t0, t1] (rounded outwards)."""
+    k0 = max(int(np.floor(t0 / frame_interval_s)), 0)
+    k1 = min(int(np.ceil(t1 / frame_interval_s)), len(positions) - 1)
+    return slice(k0, k1 + 1)
+
+
 def moving_extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float,
                   speed_threshold_m_s: float) -> np.ndarray | None:
     """[3, 2] bounds (m) of the particles that move faster than the threshold at any frame in
     [t0, t1], over all their positions in the window; None when nothing moves."""
-    k0 = max(int(np.floor(t0 / frame_interval_s)), 0)
-    k1 = min(int(np.ceil(t1 / frame_interval_s)), len(positions) - 1)
-    sp = speeds(positions, frame_interval_s)[k0:k1 + 1]
+    w = _frames(positions, frame_interval_s, t0, t1)
+    first = max(w.start - 1, 0)  # a frame's speed needs the frame before it
+    sp = speeds(positions[first:w.stop], frame_interval_s)[w.start - first:]
     moving = (sp > speed_threshold_m_s).any(axis=0)
     if not moving.any():
         return None
-    pts = positions[k0:k1 + 1, moving].reshape(-1, 3)
+    pts = positions[w, moving].reshape(-1, 3)
     return np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
 
 
 def extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> np.ndarray:
     """[3, 2] bounds (m) of every particle over the frames in [t0, t1]."""
-    k0 = max(int(np.floor(t0 / frame_interval_s)), 0)
-    k1 = min(int(np.ceil(t1 / frame_interval_s)), len(positions) - 1)
-    pts = positions[k0:k1 + 1].reshape(-1, 3)
+    pts = positions[_frames(positions, frame_interval_s, t0, t1)].reshape(-1, 3)
     return np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
 
 

@@ -40,6 +40,7 @@ class InitialState:
     friction_deg: float
     bounds_m: np.ndarray  # [3, 2]
     name: str
+    duration_s: float  # the scene's simulated time, s
 
 
 def _lattice(lo, hi, s: float) -> np.ndarray:
@@ -60,6 +61,7 @@ def initial_state(scene_toml: str | Path, spacing_m: float, frame_interval_s: fl
         raw = tomllib.loads(path.read_text())
         size = np.array(raw["domain"]["size_m"], np.float64)
         friction = float(raw["material"]["friction_angle_deg"])
+        duration = float(raw["time"]["duration_s"])
         bodies = raw["body"]
     except (OSError, tomllib.TOMLDecodeError, KeyError) as exc:
         raise ValueError(f"{path}: cannot read the scene ({exc!r})") from None
@@ -81,7 +83,7 @@ def initial_state(scene_toml: str | Path, spacing_m: float, frame_interval_s: fl
         raise ValueError(f"{path}: no particles at spacing {spacing_m} m")
     frames = np.stack([x - (history - k) * v for k in range(history + 1)])
     bounds = np.stack([np.zeros(3), size], axis=1)
-    return InitialState(frames, friction, bounds, raw.get("name", path.stem))
+    return InitialState(frames, friction, bounds, raw.get("name", path.stem), duration)
 
 
 def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndarray,

@@ -118,19 +118,18 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     meta = load_metadata(dataset)
     train_trajs, val_trajs = load_split(dataset, "train"), load_split(dataset, "valid")
-    stats = combined_stats(meta, cfg.noise_std)
-    step, history = 0, []
-    model = GNS(model_config, stats).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    step, history, ckpt = 0, [], {}
     if resume:
-        ckpt = torch.load(resume, map_location=device, weights_only=True)
-        model = GNS(ModelConfig(**ckpt["model_config"]), ckpt["stats"]).to(device)
-        model.load_state_dict(ckpt["state_dict"])
-        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-        if "optimizer" in ckpt:
-            opt.load_state_dict(ckpt["optimizer"])
+        model, ckpt = load_checkpoint(resume, device)  # its model config and statistics win
         step, history = int(ckpt["step"]), list(ckpt.get("history", []))
         stats, model_config = ckpt["stats"], model.config
+    else:
+        stats = combined_stats(meta, cfg.noise_std)
+        model = GNS(model_config, stats).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    if "optimizer" in ckpt:
+        opt.load_state_dict(ckpt["optimizer"])
+    if resume:
         print(f"train: resumed {resume} at step {step}", file=log, flush=True)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -171,7 +170,7 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         n_acc += 1
         now = time.perf_counter()
         if now - t_last > 10 or step == cfg.steps:
-            rate = step / max(now - t0, 1e-9) if not resume else n_acc / max(now - t_last, 1e-9)
+            rate = n_acc / max(now - t_last, 1e-9)
             print(f"train: step {step}/{cfg.steps} loss {loss_acc / n_acc:.4f} lr {lr:.2e} "
                   f"{rate:.2f} steps/s", file=log, flush=True)
             history.append({"step": step, "loss": loss_acc / n_acc, "lr": lr,

@@ -107,7 +107,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 def _cmd_sim(args: argparse.Namespace) -> int:
     from sim.driver import SimulationError
     from sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
-    from sim.scene import SceneError, builtin_scene_path
+    from sim.scene import SceneError, scene_path
 
     if args.ranks is not None and args.ranks < 1:
         print("minority sim: error: --ranks must be at least 1", file=sys.stderr)
@@ -115,9 +115,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if not under_launcher() and (args.ranks or 1) > 1:
         return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
     try:
-        scene = Path(args.scene)
-        if not scene.exists() and scene.suffix == "":
-            scene = builtin_scene_path(args.scene)
+        scene = scene_path(args.scene)
         publish = None
         if not args.no_publish:
             from protocol.session import options_from_args

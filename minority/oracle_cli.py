@@ -58,18 +58,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def scene_path(name: str) -> Path:
-    """A scene TOML path, or the shipped scene of that name."""
-    path = Path(name)
-    if path.exists() or path.suffix:
-        return path
-    from sim.scene import builtin_scene_path
-    return builtin_scene_path(name)
-
-
 def _cmd_rollout(args: argparse.Namespace) -> int:
     import time
-    import tomllib
 
     import torch
 
@@ -77,6 +67,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     from gns.rollout import RolloutError, initial_state, rollout
     from gns.runtime import tune_allocator
     from gns.train import load_checkpoint
+    from sim.scene import scene_path
 
     tune_allocator()
     if args.threads:
@@ -87,7 +78,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         path = scene_path(args.scene)
         init = initial_state(path, st["particle_spacing_m"], st["frame_interval_s"],
                              model.config.input_velocities)
-        duration = args.duration or float(tomllib.loads(path.read_text())["time"]["duration_s"])
+        duration = args.duration or init.duration_s
         frames = max(1, round(duration / st["frame_interval_s"]))
         n = init.positions.shape[1]
         print(f"rollout: {init.name}, {n} particles at {st['particle_spacing_m']} m, "

@@ -352,6 +352,15 @@ def builtin_scene_path(name: str) -> Path:
     return path
 
 
+def scene_path(name_or_path: str | Path) -> Path:
+    """A scene TOML path as given, or the shipped scene of that name when no such file
+    exists and the name has no suffix (what every command's SCENE argument accepts)."""
+    path = Path(name_or_path)
+    if not path.exists() and path.suffix == "":
+        return builtin_scene_path(str(name_or_path))
+    return path
+
+
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene TOML file."""
     path = Path(path)

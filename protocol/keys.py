@@ -6,6 +6,7 @@
     minority/{run}/frame/{view}         a rendered frame
     minority/{run}/timing               timing records
     minority/{run}/event                lifecycle events
+    minority/{run}/stats                per-rank flow statistics (for scoring the oracle)
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ class Topic:
     FRAME = "frame"
     TIMING = "timing"
     EVENT = "event"
+    STATS = "stats"
 
 
 def _run(run: str) -> str:
@@ -70,6 +72,10 @@ def event(run: str) -> str:
     return f"{ROOT}/{_run(run)}/{Topic.EVENT}"
 
 
+def stats(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/{Topic.STATS}"
+
+
 def everything(run: str = ALL_RUNS) -> str:
     """All messages of one run, or of every run."""
     return f"{ROOT}/{_run(run)}/**"
@@ -89,7 +95,7 @@ class ParsedKey:
 
 
 _ARITY = {Topic.SPEC: 0, Topic.CHUNK: 2, Topic.RANK: 1, Topic.FRAME: 1, Topic.TIMING: 0,
-          Topic.EVENT: 0}
+          Topic.EVENT: 0, Topic.STATS: 0}
 
 
 def parse(key: str) -> ParsedKey | None:

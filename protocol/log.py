@@ -30,7 +30,7 @@ from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.errors import ProtocolError
-from protocol.messages import Chunk, Event, Frame, Timing, decode_as
+from protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
 from protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
 from protocol.session import Inbox
 from protocol.spec import Spec
@@ -40,9 +40,9 @@ PROFILE = "minority"
 REJECTED_TOPIC = f"{keys.ROOT}/_rejected"
 JSON_ENCODING = "json"
 _BY_TOPIC = {keys.Topic.CHUNK: Chunk, keys.Topic.SPEC: Spec, keys.Topic.FRAME: Frame,
-             keys.Topic.TIMING: Timing, keys.Topic.EVENT: Event}
+             keys.Topic.TIMING: Timing, keys.Topic.EVENT: Event, keys.Topic.STATS: Stats}
 _BY_SCHEMA = {"minority.Chunk": Chunk, "minority.Spec": Spec, "foxglove.CompressedImage": Frame,
-              "minority.Timing": Timing, "minority.Event": Event}
+              "minority.Timing": Timing, "minority.Event": Event, "minority.Stats": Stats}
 
 
 class LogWriter:
@@ -157,7 +157,8 @@ def default_key(message) -> str:
         return keys.chunk(message.run, message.step, message.rank)
     if isinstance(message, Frame):
         return keys.frame(message.run, message.view)
-    return {Spec: keys.spec, Timing: keys.timing, Event: keys.event}[type(message)](message.run)
+    return {Spec: keys.spec, Timing: keys.timing, Event: keys.event,
+            Stats: keys.stats}[type(message)](message.run)
 
 
 class Recorder:
@@ -214,7 +215,7 @@ class LogRecord:
     data: bytes  # as stored: wire payload for chunks, JSON for the rest
 
     def decode(self):
-        """The message object (Chunk, Frame, Spec, Timing, Event)."""
+        """The message object (Chunk, Frame, Spec, Timing, Event, Stats)."""
         cls = _BY_SCHEMA.get(self.schema)
         if cls is None:
             raise ProtocolError(f"topic {self.topic!r} has schema {self.schema!r}, not a message")

@@ -1,4 +1,4 @@
-"""Message types on the wire: Chunk, Frame, Timing, Event (Spec lives in protocol.spec).
+"""Message types on the wire: Chunk, Frame, Timing, Event, Stats (Spec: protocol.spec).
 
 Each type encodes to the envelope of `protocol.wire` and decodes with full validation;
 every failure is a `ProtocolError` naming the problem.
@@ -34,7 +34,7 @@ Vec3 = tuple[Coord, Coord, Coord]
 Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_IMAGE_SIDE)]
 
 
-class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True):
+class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     run: Name
     step: Count
     time_s: Seconds
@@ -43,6 +43,7 @@ class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True):
     count: Count
     spacing_m: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_ABS_COORD_M)]
     bounds_m: tuple[Vec3, Vec3]
+    prev_time_s: Seconds | None = None  # the previous step's time (every_s cadences use it)
 
 
 class FrameMeta(msgspec.Struct, forbid_unknown_fields=True):
@@ -74,6 +75,7 @@ class Chunk:
     bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]]  # domain (lo, hi)
     fields: dict[str, np.ndarray]
     sent_ns: int = 0
+    prev_time_s: float | None = None  # simulated time of the step before, s (None: not known)
 
     @property
     def count(self) -> int:
@@ -85,7 +87,8 @@ class Chunk:
 
     def meta(self) -> ChunkMeta:
         return ChunkMeta(self.run, self.step, self.time_s, self.rank, self.ranks, self.count,
-                         self.spacing_m, (tuple(self.bounds_m[0]), tuple(self.bounds_m[1])))
+                         self.spacing_m, (tuple(self.bounds_m[0]), tuple(self.bounds_m[1])),
+                         self.prev_time_s)
 
     def encode(self) -> bytearray:
         pos = self.fields.get(POSITIONS)
@@ -116,7 +119,7 @@ class Chunk:
                                     f"expected [{count}] or [{count}, k]")
         env.check_finite()
         return cls(m.run, m.step, m.time_s, m.rank, m.ranks, m.spacing_m, (lo, hi),
-                   dict(env.arrays), env.sent_ns)
+                   dict(env.arrays), env.sent_ns, m.prev_time_s)
 
 
 @dataclass
@@ -290,9 +293,72 @@ class Event(_JsonMessage):
                    sent_ns=sent_ns)
 
 
+# Speed histogram of Stats: bin 0 counts speeds below SPEED_EDGES_M_S[0], bin i (1..50) speeds
+# in [edge[i-1], edge[i]), the last bin speeds from edge[-1] up; 10 bins per decade.
+SPEED_EDGES_M_S = tuple(float(10.0 ** (k / 10.0 - 4.0)) for k in range(51))  # 1e-4 .. 10 m/s
+SPEED_BINS = len(SPEED_EDGES_M_S) + 1
+
+
+def speed_histogram(speed_m_s: np.ndarray) -> list[int]:
+    """Counts of speeds [n] (m/s) in the SPEED_BINS bins of Stats."""
+    idx = np.searchsorted(np.asarray(SPEED_EDGES_M_S), speed_m_s, side="right")
+    return np.bincount(idx, minlength=SPEED_BINS).tolist()
+
+
+@dataclass
+class Stats(_JsonMessage):
+    """One rank's flow statistics at one step, published on a fixed cadence of simulated time
+    whether or not a view is due, so the oracle's predictions can be scored against the full
+    run without sending particles. `in_regions` counts particles inside the regions of the
+    windows open at time_s (all of them when an open window needs every particle, none when
+    no window is open: then windows_open is false)."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.STATS
+
+    run: str
+    rank: int
+    step: int
+    time_s: float  # simulated time, s
+    count: int  # particles on the rank
+    speed_sq_sum_m2_s2: float  # sum of |v|^2 over the rank's particles
+    max_speed_m_s: float
+    max_displacement_m: float  # max |x - x0|
+    windows_open: bool
+    hist_in_regions: list[int]  # [SPEED_BINS] speeds of particles in the open regions
+    hist_elsewhere: list[int]  # [SPEED_BINS] the others
+    sent_ns: int = 0
+
+    def to_json(self) -> dict:
+        return {k: getattr(self, k) for k in _STATS_KEYS}
+
+    @classmethod
+    def from_json(cls, obj: dict, sent_ns: int = 0) -> Stats:
+        m = check.keys(obj, "stats", set(_STATS_KEYS))
+        hists = {}
+        for k in ("hist_in_regions", "hist_elsewhere"):
+            h = m[k]
+            if not isinstance(h, list) or len(h) != SPEED_BINS:
+                raise ProtocolError(f"stats.{k}: expected a list of {SPEED_BINS} counts")
+            hists[k] = [check.integer(c, f"stats.{k}[{i}]", 0) for i, c in enumerate(h)]
+        if sum(hists["hist_in_regions"]) + sum(hists["hist_elsewhere"]) != m["count"]:
+            raise ProtocolError("stats: histogram counts do not add up to stats.count")
+        return cls(run=check.name(m["run"], "stats.run"),
+                   rank=check.integer(m["rank"], "stats.rank", 0, MAX_RANKS),
+                   step=check.integer(m["step"], "stats.step", 0),
+                   time_s=check.number(m["time_s"], "stats.time_s", 0.0),
+                   count=check.integer(m["count"], "stats.count", 0),
+                   **{k: check.number(m[k], f"stats.{k}", 0.0)
+                      for k in ("speed_sq_sum_m2_s2", "max_speed_m_s", "max_displacement_m")},
+                   windows_open=check.boolean(m["windows_open"], "stats.windows_open"),
+                   **hists, sent_ns=sent_ns)
+
+
+_STATS_KEYS = ("run", "rank", "step", "time_s", "count", "speed_sq_sum_m2_s2", "max_speed_m_s",
+               "max_displacement_m", "windows_open", "hist_in_regions", "hist_elsewhere")
+
 META_TYPES = {MessageKind.CHUNK: ChunkMeta, MessageKind.FRAME: FrameMeta}
 _CLASSES = {MessageKind.CHUNK: Chunk, MessageKind.FRAME: Frame, MessageKind.TIMING: Timing,
-            MessageKind.EVENT: Event, MessageKind.SPEC: Spec}
+            MessageKind.EVENT: Event, MessageKind.SPEC: Spec, MessageKind.STATS: Stats}
 
 
 def decode_message(payload):

@@ -7,7 +7,8 @@ from protocol import wire
 WIRE_ENCODING = "minority-wire-v1"
 WIRE_SCHEMA = (wire.__doc__ or "") + """
 Chunk meta: run (str), step (int), time_s (simulated s), rank (int), ranks (int),
-count (particles n), spacing_m (particle spacing, m), bounds_m ([[x,y,z] lo, [x,y,z] hi], m).
+count (particles n), spacing_m (particle spacing, m), bounds_m ([[x,y,z] lo, [x,y,z] hi], m),
+prev_time_s (optional: simulated time of the step before, s).
 Chunk arrays: positions [n, 3] <f4 (m, required); other fields [n] or [n, k] with n rows,
 e.g. displacement [n, 3] <f4 (m), velocity [n, 3] <f4 (m/s).
 """
@@ -25,11 +26,13 @@ def _obj(props: dict, required: list[str] | None = None) -> dict:
 _CAMERA = _obj({"position": _VEC3, "focal_point": _VEC3, "view_up": _VEC3,
                 "view_angle_deg": _NUM, "parallel_projection": {"type": "boolean"},
                 "parallel_scale_m": _NUM}, ["position", "focal_point"])
+_WINDOW = _obj({"t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT,
+                "every_s": _NUM, "regions": {"type": "array", "items": _STR}}, [])
 _VIEW = _obj({"name": _STR, "camera": _CAMERA, "width": _INT, "height": _INT,
-              "background": _VEC3, "field": _STR, "colormap": _STR,
+              "background": _VEC3, "field": _STR,
+              "colormap": {"type": ["string", "object"]},
               "range": {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2},
-              "t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT,
-              "regions": {"type": "array", "items": _STR}},
+              "decimate": _INT, "schedule": {"type": "array", "items": _WINDOW}},
              ["name", "camera"])
 _REGION = _obj({"name": _STR, "lo_m": _VEC3, "hi_m": _VEC3})
 
@@ -44,7 +47,12 @@ JSON_SCHEMAS: dict[str, dict] = {
     }, ["timestamp", "frame_id", "data", "format"]),
     "minority.Spec": _obj({"version": _INT, "run": _STR, "sphere_radius_m": _NUM,
                            "views": {"type": "array", "items": _VIEW},
-                           "regions": {"type": "array", "items": _REGION}},
+                           "regions": {"type": "array", "items": _REGION},
+                           "events": {"type": "array", "items": _obj(
+                               {"name": _STR, "time_s": _NUM, "tolerance_s": _NUM})},
+                           "budget": _obj({"frames": {"type": ["integer", "null"]},
+                                           "bytes": {"type": ["integer", "null"]}}, []),
+                           "provenance": {"type": "object"}},
                           ["version", "run", "views"]),
     "minority.Timing": _obj({"run": _STR, "step": _INT, "view": _STR, "time_s": _NUM,
                              "receive_s": _NUM, "setup_s": _NUM, "render_s": _NUM,
@@ -53,6 +61,11 @@ JSON_SCHEMAS: dict[str, dict] = {
     "minority.Event": _obj({"run": _STR, "event": {"enum": ["run_start", "rank_done",
                                                             "run_end", "error"]},
                             "rank": _INT, "message": _STR, "detail": {"type": "object"}}),
+    "minority.Stats": _obj({"run": _STR, "rank": _INT, "step": _INT, "time_s": _NUM,
+                            "count": _INT, "speed_sq_sum_m2_s2": _NUM, "max_speed_m_s": _NUM,
+                            "max_displacement_m": _NUM, "windows_open": {"type": "boolean"},
+                            "hist_in_regions": {"type": "array", "items": _INT},
+                            "hist_elsewhere": {"type": "array", "items": _INT}}),
     "minority.Rejected": _obj({"key": _STR, "reason": _STR, "bytes": _INT,
                                "payload_b64": {"type": "string", "contentEncoding": "base64"}}),
 }

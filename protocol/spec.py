@@ -1,68 +1,40 @@
 """The oracle spec: which views to render, when, with which colors, of which particles.
 
-A minimal versioned model (SPEC_VERSION 1); the oracle issue completes it. Specs live as
-JSON files, travel as SPEC messages (the JSON as the envelope meta) and validate with
-errors that start with the path of the bad field, e.g. ``views[1].camera.view_up``.
+A versioned JSON model (SPEC_VERSION 2; version 1 files still read). Specs live as JSON
+files, travel as SPEC messages (the JSON as the envelope meta) and validate with errors that
+start with the path of the bad field, e.g. ``views[1].schedule[0].every_s``.
 
-Regions of interest (optional, still version 1): the spec may name axis-aligned boxes
-(`regions`), and a view may list the regions whose particles it needs (`views[i].regions`).
-A view without regions needs every particle. `Spec.request(step, time_s)` says what the
-simulation must send at a step: the union of the fields and of the regions of the views
-scheduled then. A spec without regions reads and writes exactly as before.
+- views (protocol.view): camera, image, field, colormap (ParaView preset name or inline
+  RGBPoints) and range, decimation, and a schedule of time windows, each with a cadence
+  and the regions of interest it needs;
+- regions: named axis-aligned boxes the windows refer to;
+- events: what the oracle predicts and when (name, time, tolerance);
+- budget: frames and bytes the schedule was planned within;
+- provenance: free-form notes on where the spec came from (checkpoint, rollout, edits).
+
+`Spec.request(step, time_s, prev_time_s)` says what the simulation must send at a step: the union
+of the fields and regions of the views due then, decimated by the views' common stride.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
 from protocol import check
 from protocol.errors import SpecError
+from protocol.view import Camera, InlineColormap, View, Window
 from protocol.wire import Envelope, MessageKind, encode
 
-SPEC_VERSION = 1
-MAX_IMAGE_SIDE = 8192  # px; 3840x2160 is the largest size the server is tested with
+SPEC_VERSION = 2
+READS_VERSIONS = (1, 2)
+ID_FIELD = "id"  # particle ids, sent when views due at one step decimate differently
 
-
-@dataclass(frozen=True)
-class Camera:
-    """VTK camera model: positions in m, view angle in degrees (vertical), or parallel
-    projection with parallel_scale = half the view height in m."""
-
-    position: tuple[float, float, float]
-    focal_point: tuple[float, float, float]
-    view_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    view_angle_deg: float = 30.0
-    parallel_projection: bool = False
-    parallel_scale_m: float = 1.0
-
-    @classmethod
-    def from_dict(cls, obj, where: str) -> Camera:
-        c = check.keys(obj, where, {"position", "focal_point"},
-                       {"view_up", "view_angle_deg", "parallel_projection", "parallel_scale_m"},
-                       error=SpecError)
-        cam = cls(position=check.vector(c["position"], f"{where}.position", error=SpecError),
-                  focal_point=check.vector(c["focal_point"], f"{where}.focal_point", error=SpecError),
-                  view_up=check.vector(c.get("view_up", cls.view_up), f"{where}.view_up",
-                                       error=SpecError),
-                  view_angle_deg=check.number(c.get("view_angle_deg", cls.view_angle_deg),
-                                              f"{where}.view_angle_deg", 0.1, 179.0, SpecError),
-                  parallel_projection=check.boolean(c.get("parallel_projection", False),
-                                                    f"{where}.parallel_projection", SpecError),
-                  parallel_scale_m=check.number(c.get("parallel_scale_m", cls.parallel_scale_m),
-                                                f"{where}.parallel_scale_m", 1e-9, None, SpecError))
-        direction = [f - p for f, p in zip(cam.focal_point, cam.position, strict=True)]
-        if math.hypot(*direction) == 0.0:
-            raise SpecError(f"{where}: position and focal_point coincide")
-        cross = (direction[1] * cam.view_up[2] - direction[2] * cam.view_up[1],
-                 direction[2] * cam.view_up[0] - direction[0] * cam.view_up[2],
-                 direction[0] * cam.view_up[1] - direction[1] * cam.view_up[0])
-        if math.hypot(*cross) <= 1e-12 * math.hypot(*direction) * max(math.hypot(*cam.view_up), 1e-300):
-            raise SpecError(f"{where}.view_up: parallel to the view direction (or zero)")
-        return cam
+__all__ = ["Budget", "Camera", "DataRequest", "InlineColormap", "PredictedEvent", "Region",
+           "Spec", "View", "Window"]
 
 
 @dataclass(frozen=True)
@@ -88,78 +60,54 @@ class Region:
 
 
 @dataclass(frozen=True)
-class DataRequest:
-    """What the simulation sends at one step: `fields` (besides positions) for the particles
-    inside any of `regions`, or for every particle when `regions` is None."""
+class PredictedEvent:
+    """Something the oracle expects at `time_s` (s), give or take `tolerance_s`."""
 
-    views: tuple[str, ...]  # the views scheduled at the step
-    fields: tuple[str, ...]  # in first-use order
-    regions: tuple[Region, ...] | None
+    name: str
+    time_s: float
+    tolerance_s: float = 0.0
+
+    @classmethod
+    def from_dict(cls, obj, where: str) -> PredictedEvent:
+        e = check.keys(obj, where, {"name", "time_s"}, {"tolerance_s"}, error=SpecError)
+        return cls(check.name(e["name"], f"{where}.name", SpecError),
+                   check.number(e["time_s"], f"{where}.time_s", 0.0, None, SpecError),
+                   check.number(e.get("tolerance_s", 0.0), f"{where}.tolerance_s", 0.0, None,
+                                SpecError))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "time_s": self.time_s, "tolerance_s": self.tolerance_s}
 
 
 @dataclass(frozen=True)
-class View:
-    """One rendered view: camera, image, colors, and when to render it."""
+class Budget:
+    """What the schedule was planned within: rendered frames (all views) and chunk bytes
+    sent by the simulation; None = no limit."""
 
-    name: str
-    camera: Camera
-    width: int = 1024  # px
-    height: int = 768  # px
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # RGB in [0, 1]
-    field: str = "displacement"  # colored by magnitude if vector-valued
-    colormap: str = "Viridis (matplotlib)"  # ParaView preset name
-    range: tuple[float, float] = (0.0, 1.0)  # colormap range, units of the field
-    t_start_s: float = 0.0  # simulated time window, s
-    t_end_s: float = math.inf
-    every_steps: int = 20  # cadence: render every n-th sim step inside the window
-    regions: tuple[str, ...] = ()  # names of the spec's regions it shows; () = everything
+    frames: int | None = None
+    bytes: int | None = None
 
     @classmethod
-    def from_dict(cls, obj, where: str) -> View:
-        v = check.keys(obj, where, {"name", "camera"},
-                       {"width", "height", "background", "field", "colormap", "range",
-                        "t_start_s", "t_end_s", "every_steps", "regions"}, error=SpecError)
-        regions = v.get("regions", [])
-        if not isinstance(regions, list):
-            raise SpecError(f"{where}.regions: expected a list of region names")
-        rng = check.vector(v.get("range", cls.range), f"{where}.range", 2, SpecError)
-        if not rng[0] < rng[1]:
-            raise SpecError(f"{where}.range: lower bound {rng[0]} must be below upper {rng[1]}")
-        t0 = check.number(v.get("t_start_s", 0.0), f"{where}.t_start_s", 0.0, None, SpecError)
-        t1 = v.get("t_end_s")
-        t1 = math.inf if t1 is None else check.number(t1, f"{where}.t_end_s", t0, None, SpecError)
-        background = check.vector(v.get("background", cls.background), f"{where}.background",
-                                  3, SpecError)
-        if not all(0.0 <= b <= 1.0 for b in background):
-            raise SpecError(f"{where}.background: RGB components must lie in [0, 1]")
-        return cls(name=check.name(v["name"], f"{where}.name", SpecError),
-                   camera=Camera.from_dict(v["camera"], f"{where}.camera"),
-                   width=check.integer(v.get("width", cls.width), f"{where}.width", 1,
-                                       MAX_IMAGE_SIDE, SpecError),
-                   height=check.integer(v.get("height", cls.height), f"{where}.height", 1,
-                                        MAX_IMAGE_SIDE, SpecError),
-                   background=background,
-                   field=check.name(v.get("field", cls.field), f"{where}.field", SpecError),
-                   colormap=check.text(v.get("colormap", cls.colormap), f"{where}.colormap", 128,
-                                       SpecError),
-                   range=rng, t_start_s=t0, t_end_s=t1,
-                   every_steps=check.integer(v.get("every_steps", cls.every_steps),
-                                             f"{where}.every_steps", 1, None, SpecError),
-                   regions=tuple(check.name(r, f"{where}.regions[{i}]", SpecError)
-                                 for i, r in enumerate(regions)))
-
-    def wants(self, step: int, time_s: float) -> bool:
-        """Whether this view renders sim step `step` at simulated time `time_s` (s)."""
-        return self.t_start_s <= time_s <= self.t_end_s and step % self.every_steps == 0
+    def from_dict(cls, obj, where: str) -> Budget:
+        b = check.keys(obj, where, set(), {"frames", "bytes"}, error=SpecError)
+        return cls(*(None if b.get(k) is None else check.integer(b[k], f"{where}.{k}", 1, None,
+                                                                  SpecError)
+                     for k in ("frames", "bytes")))
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["t_end_s"] = None if math.isinf(self.t_end_s) else self.t_end_s
-        if self.regions:
-            d["regions"] = list(self.regions)
-        else:
-            del d["regions"]  # a spec without regions writes as before
-        return d
+        return {"frames": self.frames, "bytes": self.bytes}
+
+
+@dataclass(frozen=True)
+class DataRequest:
+    """What the simulation sends at one step: `fields` (besides positions) for every
+    `decimate`-th particle (by id) inside any of `regions`, or anywhere when `regions` is
+    None."""
+
+    views: tuple[str, ...]  # the views due at the step
+    fields: tuple[str, ...]  # in first-use order
+    regions: tuple[Region, ...] | None
+    decimate: int = 1
 
 
 @dataclass(frozen=True)
@@ -172,7 +120,10 @@ class Spec:
     views: tuple[View, ...]
     version: int = SPEC_VERSION
     sphere_radius_m: float | None = None  # render radius; None: half the particle spacing
-    regions: tuple[Region, ...] = ()  # regions of interest the views refer to by name
+    regions: tuple[Region, ...] = ()  # regions of interest the windows refer to by name
+    events: tuple[PredictedEvent, ...] = ()
+    budget: Budget = Budget()
+    provenance: dict = field(default_factory=dict, compare=False)
     sent_ns: int = field(default=0, compare=False)
 
     @property
@@ -180,63 +131,95 @@ class Spec:
         """Particle fields the sim must send besides positions, in first-use order."""
         return tuple(dict.fromkeys(v.field for v in self.views))
 
-    def wants(self, step: int, time_s: float) -> list[View]:
-        return [v for v in self.views if v.wants(step, time_s)]
+    def region(self, name: str) -> Region:
+        return next(r for r in self.regions if r.name == name)
 
-    def request(self, step: int, time_s: float) -> DataRequest | None:
-        """What the simulation must send at sim step `step`, simulated time `time_s` (s):
-        None when no view is scheduled; regions None when a scheduled view needs every
-        particle."""
-        views = self.wants(step, time_s)
+    def wants(self, step: int, time_s: float, prev_time_s: float | None = None) -> list[View]:
+        """The views due at sim step `step`, time `time_s`, reached from `prev_time_s` (s)."""
+        return [v for v in self.views if v.wants(step, time_s, prev_time_s)]
+
+    def view_regions(self, view: View, step: int, time_s: float,
+                     prev_time_s: float | None = None) -> tuple[Region, ...] | None:
+        """The regions `view` shows at this step (None: every particle; the view must be due)."""
+        names = view.window(step, time_s, prev_time_s).regions
+        return tuple(self.region(n) for n in names) if names else None
+
+    def request(self, step: int, time_s: float, prev_time_s: float | None = None) -> DataRequest | None:
+        """What the simulation must send at this step: None when no view is due; regions None
+        when a due view needs every particle."""
+        views = self.wants(step, time_s, prev_time_s)
         if not views:
             return None
-        fields = tuple(dict.fromkeys(v.field for v in views))
-        if any(not v.regions for v in views):
-            return DataRequest(tuple(v.name for v in views), fields, None)
-        by_name = {r.name: r for r in self.regions}
-        names = dict.fromkeys(name for v in views for name in v.regions)
-        return DataRequest(tuple(v.name for v in views), fields,
-                           tuple(by_name[n] for n in names))
+        fields = dict.fromkeys(v.field for v in views)
+        stride = math.gcd(*(v.decimate for v in views))
+        if any(v.decimate != stride for v in views):
+            fields[ID_FIELD] = None  # the server picks each view's particles by id
+        boxes = [self.view_regions(v, step, time_s, prev_time_s) for v in views]
+        regions = (None if any(b is None for b in boxes)
+                   else tuple(dict.fromkeys(r for b in boxes for r in b)))
+        return DataRequest(tuple(v.name for v in views), tuple(fields), regions, stride)
+
+    def active_regions(self, time_s: float) -> tuple[Region, ...] | None:
+        """The union of the regions of every window open at `time_s` (cadence aside):
+        None when an open window needs every particle, () when no window is open."""
+        windows = [w for v in self.views for w in v.schedule if w.contains(time_s)]
+        if any(not w.regions for w in windows):
+            return None
+        return tuple(self.region(n) for n in dict.fromkeys(r for w in windows for r in w.regions))
+
+    def planned_frames(self, duration_s: float, dt_s: float) -> int:
+        """About how many frames a run of `duration_s` with steps of `dt_s` (s) renders."""
+        return sum(v.planned_frames(duration_s, dt_s) for v in self.views)
 
     def to_dict(self) -> dict:
-        d = {"version": self.version, "run": self.run, "views": [v.to_dict() for v in self.views]}
+        d = {"version": SPEC_VERSION, "run": self.run, "views": [v.to_dict() for v in self.views]}
         if self.sphere_radius_m is not None:
             d["sphere_radius_m"] = self.sphere_radius_m
-        if self.regions:
-            d["regions"] = [r.to_dict() for r in self.regions]
+        d["regions"] = [r.to_dict() for r in self.regions]
+        d["events"] = [e.to_dict() for e in self.events]
+        d["budget"] = self.budget.to_dict()
+        if self.provenance:
+            d["provenance"] = self.provenance
         return d
 
     @classmethod
     def from_dict(cls, obj, sent_ns: int = 0) -> Spec:
-        s = check.keys(obj, "spec", {"version", "run", "views"}, {"sphere_radius_m", "regions"},
+        s = check.keys(obj, "spec", {"version", "run", "views"},
+                       {"sphere_radius_m", "regions", "events", "budget", "provenance"},
                        error=SpecError)
         version = check.integer(s["version"], "version", error=SpecError)
-        if version != SPEC_VERSION:
+        if version not in READS_VERSIONS:
             raise SpecError(f"version: spec version {version} is not supported "
-                            f"(this build reads {SPEC_VERSION})")
+                            f"(this build reads {', '.join(map(str, READS_VERSIONS))})")
         if not isinstance(s["views"], list) or not s["views"]:
             raise SpecError("views: expected a non-empty list")
         views = tuple(View.from_dict(v, f"views[{i}]") for i, v in enumerate(s["views"]))
-        names = [v.name for v in views]
-        if len(set(names)) != len(names):
-            raise SpecError(f"views: view names must be unique, got {names}")
+        _unique([v.name for v in views], "views: view names")
         radius = s.get("sphere_radius_m")
         if radius is not None:
             radius = check.number(radius, "sphere_radius_m", 1e-9, None, SpecError)
-        raw_regions = s.get("regions", [])
-        if not isinstance(raw_regions, list):
-            raise SpecError("regions: expected a list of {name, lo_m, hi_m}")
-        regions = tuple(Region.from_dict(r, f"regions[{i}]") for i, r in enumerate(raw_regions))
+        regions = tuple(Region.from_dict(r, f"regions[{i}]")
+                        for i, r in enumerate(_list(s, "regions", "{name, lo_m, hi_m}")))
         region_names = [r.name for r in regions]
-        if len(set(region_names)) != len(region_names):
-            raise SpecError(f"regions: region names must be unique, got {region_names}")
+        _unique(region_names, "regions: region names")
         for i, v in enumerate(views):
-            for j, name in enumerate(v.regions):
-                if name not in region_names:
-                    raise SpecError(f"views[{i}].regions[{j}]: no region named {name!r} "
-                                    f"(regions: {region_names})")
-        return cls(run=check.name(s["run"], "run", SpecError), views=views, version=version,
-                   sphere_radius_m=radius, regions=regions, sent_ns=sent_ns)
+            for k, w in enumerate(v.schedule):
+                for j, name in enumerate(w.regions):
+                    if name not in region_names:
+                        where = (f"views[{i}].schedule[{k}]" if "schedule" in s["views"][i]
+                                 else f"views[{i}]")
+                        raise SpecError(f"{where}.regions[{j}]: no region named {name!r} "
+                                        f"(regions: {region_names})")
+        events = tuple(PredictedEvent.from_dict(e, f"events[{i}]")
+                       for i, e in enumerate(_list(s, "events", "{name, time_s, tolerance_s}")))
+        _unique([e.name for e in events], "events: event names")
+        budget = Budget.from_dict(s["budget"], "budget") if s.get("budget") else Budget()
+        provenance = s.get("provenance", {})
+        if not isinstance(provenance, dict):
+            raise SpecError("provenance: expected an object")
+        return cls(run=check.name(s["run"], "run", SpecError), views=views, version=SPEC_VERSION,
+                   sphere_radius_m=radius, regions=regions, events=events, budget=budget,
+                   provenance=provenance, sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:
@@ -263,3 +246,15 @@ class Spec:
         except json.JSONDecodeError as exc:
             raise SpecError(f"{path}: not valid JSON ({exc})") from None
         return cls.from_dict(obj)
+
+
+def _list(s: dict, key: str, shape: str) -> list:
+    value = s.get(key, [])
+    if not isinstance(value, list):
+        raise SpecError(f"{key}: expected a list of {shape}")
+    return value
+
+
+def _unique(names: list[str], what: str) -> None:
+    if len(set(names)) != len(names):
+        raise SpecError(f"{what} must be unique, got {names}")

@@ -68,6 +68,7 @@ class MessageKind(IntEnum):
     FRAME = 3
     TIMING = 4
     EVENT = 5
+    STATS = 6
 
 
 WireDtype = Literal["<f4", "<f8", "<i4", "<i8", "<u4", "<u8", "<i2", "<u2", "|i1", "|u1"]

@@ -8,7 +8,7 @@ import zlib
 import numpy as np
 import pytest
 
-from protocol import Chunk, Event, EventKind, Frame, Spec, Timing
+from protocol import Chunk, Event, EventKind, Frame, Spec, Stats, Timing
 from protocol.session import NetworkOptions, Role, open_session
 
 
@@ -85,4 +85,6 @@ def sample_messages() -> list:
     return [make_chunk(), make_spec(),
             Frame("test-run", "side", 40, 0.004, 4, 3, make_png()),
             Timing("test-run", 40, "side", 0.004, 0.01, 0.002, 0.03, 4096, 100, 2, 2, False),
-            Event("test-run", EventKind.RANK_DONE, 1, "rank 1 done", {"dropped": 0})]
+            Event("test-run", EventKind.RANK_DONE, 1, "rank 1 done", {"dropped": 0}),
+            Stats("test-run", 1, 40, 0.004, 100, 12.5, 0.75, 0.02, True,
+                  [0] * 40 + [60] + [0] * 11, [0] * 30 + [40] + [0] * 21)]

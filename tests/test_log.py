@@ -25,8 +25,8 @@ def test_every_type_round_trips(tmp_path):
     records = list(read_log(path))
     assert [r.topic for r in records] == ["minority/test-run/chunk", "minority/test-run/spec",
                                           "minority/test-run/frame/side", "minority/test-run/timing",
-                                          "minority/test-run/event"]
-    assert [r.log_ns for r in records] == [1000, 1001, 1002, 1003, 1004]
+                                          "minority/test-run/event", "minority/test-run/stats"]
+    assert [r.log_ns for r in records] == [1000, 1001, 1002, 1003, 1004, 1005]
     for message, record in zip(messages, records, strict=True):
         back = record.decode()
         assert type(back) is type(message)
@@ -48,11 +48,11 @@ def test_standard_reader_sees_schemas_and_metadata(tmp_path):
         schemas = {s.name: s.encoding for s in summary.schemas.values()}
         assert schemas == {"minority.Chunk": "minority-wire-v1", "minority.Spec": "jsonschema",
                            "foxglove.CompressedImage": "jsonschema", "minority.Timing": "jsonschema",
-                           "minority.Event": "jsonschema"}
+                           "minority.Event": "jsonschema", "minority.Stats": "jsonschema"}
         channels = {c.topic: c for c in summary.channels.values()}
         assert channels["minority/test-run/timing"].message_encoding == "json"
         assert channels["minority/test-run/chunk"].metadata["run"] == "test-run"
-        assert summary.statistics.message_count == 5
+        assert summary.statistics.message_count == 6
     frame = next(r for r in read_log(path) if r.schema == "foxglove.CompressedImage")
     obj = json.loads(frame.data)
     assert obj["format"] == "png" and obj["frame_id"] == "side" and {"sec", "nsec"} <= obj["timestamp"].keys()

@@ -35,7 +35,7 @@ def normalized(obj) -> dict:
     return json.loads(json.dumps(obj))  # tuples -> lists, as stored
 
 
-NAMES = ["chunk", "spec", "frame", "timing", "event"]
+NAMES = ["chunk", "spec", "frame", "timing", "event", "stats"]
 
 
 @pytest.mark.skipif(not REGEN, reason="set MINORITY_REGEN_GOLDEN=1 to rewrite the golden files")
@@ -54,3 +54,12 @@ def test_golden_decodes_and_reencodes_identically(name):
     message = decode_message(golden)
     assert normalized(summary(message)) == json.loads((GOLDEN / f"{name}.json").read_text())
     assert bytes(message.encode()) == golden, f"encoding of {name} changed; see the docstring"
+
+
+def test_version_1_spec_golden_still_decodes():
+    """Spec version 1 (one window per view) reads as the same spec; it re-encodes as version 2."""
+    from conftest import make_spec
+
+    message = decode_message((GOLDEN / "spec_v1.bin").read_bytes())
+    stored = json.loads((GOLDEN / "spec_v1.json").read_text())["json"]
+    assert stored["version"] == 1 and message == make_spec()

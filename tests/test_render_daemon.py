@@ -130,7 +130,8 @@ def test_minority_serve_runs_until_sigterm(endpoint, tmp_path):
 
 def test_newest_step_wins_when_rendering_falls_behind(server, client_factory, tmp_path):
     every_step = Spec.from_dict({**spec().to_dict(),
-                                 "views": [{**spec().views[0].to_dict(), "every_steps": 1}]})
+                                 "views": [{**spec().views[0].to_dict(),
+                                            "schedule": [{"every_steps": 1}]}]})
     daemon = RenderServer(server, ServerOptions(every_step, tmp_path, None, timeout_s=30.0,
                                                 write_png=False))
     gate = threading.Event()  # holds the render thread, as a slow render would

@@ -129,7 +129,7 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
     try:
         log = io.StringIO()
         summary = run_ranks(config(endpoint, tmp_path, 40), stream=log)
-        assert summary.spec_version == 1 and summary.run == RUN
+        assert summary.spec_version == 2 and summary.run == RUN
         p = summary.publish
         assert (p["scheduled"], p["sent"], p["dropped"]) == (3, 3, 0)  # steps 0, 20, 40
         assert wait_until(lambda: chunks.received == 3 and events.received == 2)
@@ -148,12 +148,12 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
         assert p["particles_sent"] == sum(c.count for c in got.values()) < p["particles_total"]
         assert p["bytes_sent"] == sum(len(c.encode()) for c in got.values())
         start, done = (decode_as(events.get(1).payload, Event) for _ in range(2))
-        assert start.kind == EventKind.RUN_START and start.detail["spec_version"] == 1
+        assert start.kind == EventKind.RUN_START and start.detail["spec_version"] == 2
         assert start.detail["scene"] == "tiny" and start.detail["ranks"] == 1
         assert done.kind == EventKind.RANK_DONE and done.rank == 0
         assert done.detail["sent"] == 3 and done.detail["dropped"] == 0
         assert wait_until(lambda: tokens == [zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE])
-        assert "spec version 1" in log.getvalue()
+        assert "spec version 2" in log.getvalue()
     finally:
         watch.undeclare()
         daemon.close()

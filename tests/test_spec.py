@@ -6,7 +6,7 @@ import math
 import pytest
 from conftest import make_spec
 
-from protocol import Spec, SpecError
+from protocol import Spec, SpecError, Window
 
 
 def base() -> dict:
@@ -26,8 +26,11 @@ def with_change(path: str, value):
     return d
 
 
+_INLINE = {"Name": "two", "ColorSpace": "RGB", "RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1]}
+
+
 @pytest.mark.parametrize("path,value,message", [
-    ("version", 2, "version: spec version 2 is not supported"),
+    ("version", 3, "version: spec version 3 is not supported"),
     ("run", "a/b", "run: expected"),
     ("views", [], "views: expected a non-empty list"),
     ("views.0.name", "", r"views\[0\].name"),
@@ -43,8 +46,23 @@ def with_change(path: str, value):
     ("views.0.height", 10000, r"views\[0\].height"),
     ("views.0.range", [1.0, 0.5], r"views\[0\].range: lower bound"),
     ("views.0.background", [1, 1, 2], r"views\[0\].background"),
-    ("views.0.t_end_s", -1, r"views\[0\].t_end_s"),
-    ("views.0.every_steps", 0, r"views\[0\].every_steps"),
+    ("views.0.decimate", 0, r"views\[0\].decimate: 0 is outside"),
+    ("views.0.colormap", 7, r"views\[0\].colormap: expected a string"),
+    ("views.0.colormap", {**_INLINE, "ColorSpace": "CMYK"}, r"views\[0\].colormap.ColorSpace"),
+    ("views.0.colormap", {**_INLINE, "RGBPoints": [0, 0, 0, 0, 1, 1, 1]},
+     r"views\[0\].colormap.RGBPoints: expected x, r, g, b quadruples"),
+    ("views.0.colormap", {**_INLINE, "RGBPoints": [1, 0, 0, 0, 0, 1, 1, 1]},
+     r"views\[0\].colormap.RGBPoints: x values must increase"),
+    ("views.0.colormap", {**_INLINE, "RGBPoints": [0, 0, 0, 0, 1, 1, 2, 1]},
+     r"views\[0\].colormap.RGBPoints: r, g, b must lie in \[0, 1\]"),
+    ("views.0.colormap", {"RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1]}, r"views\[0\].colormap: missing Name"),
+    ("views.0.schedule", [], r"views\[0\].schedule: expected a non-empty list"),
+    ("views.0.schedule.0.t_end_s", -1, r"views\[0\].schedule\[0\].t_end_s"),
+    ("views.0.schedule.0.every_steps", 0, r"views\[0\].schedule\[0\].every_steps"),
+    ("views.0.schedule.0.every_s", 0, r"views\[0\].schedule\[0\].every_s"),
+    ("views.0.schedule.0.every_s", 0.01, r"views\[0\].schedule\[0\]: give every_steps or every_s"),
+    ("views.0.schedule.0.when", 1, r"views\[0\].schedule\[0\]: unknown field\(s\) when"),
+    ("views.0.t_start_s", 0.0, r"views\[0\]: give a schedule or the single-window keys"),
     ("views.0.colour", "red", r"views\[0\]: unknown field\(s\) colour"),
     ("sphere_radius_m", 0, r"sphere_radius_m: 0 is outside"),
     ("regions", {"name": "a"}, "regions: expected a list"),
@@ -53,8 +71,18 @@ def with_change(path: str, value):
      r"regions\[0\]: lo_m \[0.0, 0.0, 1.0\] exceeds hi_m"),
     ("regions", [{"name": "a", "lo_m": [0, 0, 0], "hi_m": [1, 1, 1]}] * 2,
      "region names must be unique"),
-    ("views.0.regions", "front", r"views\[0\].regions: expected a list"),
-    ("views.0.regions", ["nowhere"], r"views\[0\].regions\[0\]: no region named 'nowhere'"),
+    ("views.0.schedule.0.regions", "front", r"views\[0\].schedule\[0\].regions: expected a list"),
+    ("views.0.schedule.0.regions", ["nowhere"],
+     r"views\[0\].schedule\[0\].regions\[0\]: no region named 'nowhere'"),
+    ("events", [{"name": "onset"}], r"events\[0\]: missing time_s"),
+    ("events", [{"name": "onset", "time_s": -0.1}], r"events\[0\].time_s: -0.1 is outside"),
+    ("events", [{"name": "onset", "time_s": 0.1, "tolerance_s": float("inf")}],
+     r"events\[0\].tolerance_s"),
+    ("events", [{"name": "onset", "time_s": 0.1}] * 2, "event names must be unique"),
+    ("budget", {"frames": 0}, r"budget.frames: 0 is outside"),
+    ("budget", {"frames": 10, "pixels": 3}, r"budget: unknown field\(s\) pixels"),
+    ("budget", {"bytes": 1.5}, r"budget.bytes: expected an integer"),
+    ("provenance", [1], "provenance: expected an object"),
 ])
 def test_bad_spec_names_the_field(path, value, message):
     with pytest.raises(SpecError, match=message):
@@ -104,19 +132,20 @@ def with_regions() -> Spec:
     d = base()
     d["regions"] = [{"name": "column", "lo_m": [0.0, 0.0, 0.0], "hi_m": [0.2, 0.5, 0.5]},
                     {"name": "front", "lo_m": [0.3, 0.0, 0.0], "hi_m": [1.0, 0.5, 0.1]}]
-    d["views"][0]["regions"] = ["column", "front"]
-    d["views"][1]["regions"] = ["front"]
+    d["views"][0]["schedule"][0]["regions"] = ["column", "front"]
+    d["views"][1]["schedule"][0]["regions"] = ["front"]
     return Spec.from_dict(d)
 
 
-def test_regions_round_trip_and_old_specs_write_as_before(tmp_path):
+def test_regions_round_trip(tmp_path):
     spec = with_regions()
     spec.save(tmp_path / "spec.json")
     assert Spec.load(tmp_path / "spec.json") == spec
     assert [r.name for r in spec.regions] == ["column", "front"]
     assert spec.views[1].regions == ("front",)
-    plain = make_spec().to_dict()  # no regions anywhere: no new keys in the JSON
-    assert "regions" not in plain and all("regions" not in v for v in plain["views"])
+    plain = make_spec().to_dict()  # no regions anywhere: windows name none
+    assert plain["regions"] == [] and all("regions" not in w for v in plain["views"]
+                                          for w in v["schedule"])
 
 
 def test_request_unions_the_scheduled_views():
@@ -130,8 +159,8 @@ def test_request_unions_the_scheduled_views():
     req = spec.request(40, 0.2)
     assert req.fields == ("velocity_magnitude",) and [r.name for r in req.regions] == ["front"]
     d = with_regions().to_dict()
-    d["views"][0]["t_end_s"] = None  # both views at step 40, t = 0.2 s: union of both
-    del d["views"][1]["regions"]  # ... and one of them needs every particle
+    d["views"][0]["schedule"][0]["t_end_s"] = None  # both views at step 40, t = 0.2 s: union
+    del d["views"][1]["schedule"][0]["regions"]  # ... and one of them needs every particle
     req = Spec.from_dict(d).request(40, 0.2)
     assert req.fields == ("displacement", "velocity_magnitude") and req.regions is None
 
@@ -141,3 +170,81 @@ def test_shipped_example_spec_requests_every_particle():
 
     spec = Spec.load(Path(__file__).parent.parent / "deploy" / "spec-column.json")
     assert spec.regions == () and spec.request(20, 0.01).regions is None
+
+
+def test_version_1_file_reads_as_one_window_per_view():
+    spec = make_spec()  # conftest writes it in the version 1 form
+    side, top = spec.views
+    assert spec.version == 2 and spec.to_dict()["version"] == 2
+    assert side.schedule == (Window(0.0, 0.15, 20),) and top.schedule == (Window(0.15),)
+    assert Spec.from_dict(spec.to_dict()) == spec
+
+
+def test_every_s_cadence_fires_on_the_first_step_after_each_instant():
+    w = Window(0.1, 0.31, every_s=0.05)
+    dt = 0.012
+    times = [0.0]
+    for _ in range(40):
+        times.append(times[-1] + dt)  # as the simulation accumulates time
+    due = [round(t, 6) for k, t in enumerate(times[1:], 1) if w.wants(k, t, times[k - 1])]
+    # instants 0.10, 0.15, ..., 0.30: the first step time at or after each one
+    assert due == [0.108, 0.156, 0.204, 0.252, 0.3]
+    assert w.planned_frames(1.0, dt) == 5
+    assert not w.wants(0, 0.0) and Window(every_s=0.05).wants(0, 0.0)
+    # steps that land on the instants (to rounding) still render each instant once
+    times = [0.0]
+    for _ in range(40):
+        times.append(times[-1] + 0.01)
+    assert sum(w.wants(k, t, times[k - 1]) for k, t in enumerate(times[1:], 1)) == 5
+
+
+def test_schedule_with_several_windows_and_regions():
+    d = base()
+    d["regions"] = [{"name": "near", "lo_m": [0, 0, 0], "hi_m": [0.2, 1, 1]},
+                    {"name": "far", "lo_m": [0.2, 0, 0], "hi_m": [1, 1, 1]}]
+    d["views"][0]["schedule"] = [
+        {"t_start_s": 0.0, "t_end_s": 0.1, "every_s": 0.05, "regions": ["near"]},
+        {"t_start_s": 0.1, "t_end_s": 0.5, "every_steps": 10, "regions": ["far"]}]
+    spec = Spec.from_dict(d)
+    side = spec.views[0]
+    assert side.t_start_s == 0.0 and side.t_end_s == 0.5 and side.regions == ("near", "far")
+    assert [r.name for r in spec.view_regions(side, 50, 0.05, 0.049)] == ["near"]
+    assert spec.view_regions(side, 50, 0.05, 0.049) == spec.request(50, 0.05, 0.049).regions
+    assert spec.request(51, 0.051, 0.05) is None
+    assert [r.name for r in spec.request(210, 0.2, 0.199).regions] == ["far"]
+    # the top view (every particle) opens at 0.15 s: no cull at a step both want
+    assert spec.request(400, 0.4, 0.399).regions is None
+    assert [r.name for r in spec.active_regions(0.12)] == ["far"]
+    assert spec.active_regions(0.3) is None and spec.active_regions(0.2) is None
+    d["views"][1]["schedule"][0]["t_end_s"] = 0.6
+    assert Spec.from_dict(d).active_regions(0.7) == ()
+
+
+def test_decimation_requests_the_common_stride_and_ids_when_views_differ():
+    d = base()
+    d["views"][0]["schedule"][0]["t_end_s"] = None
+    d["views"][1]["schedule"][0]["every_steps"] = 20
+    d["views"][0]["decimate"], d["views"][1]["decimate"] = 4, 6
+    req = Spec.from_dict(d).request(40, 0.2)
+    assert req.decimate == 2 and req.fields == ("displacement", "velocity_magnitude", "id")
+    d["views"][1]["decimate"] = 4
+    req = Spec.from_dict(d).request(40, 0.2)
+    assert req.decimate == 4 and "id" not in req.fields
+    assert Spec.from_dict(d).request(20, 0.1).decimate == 4  # side alone
+
+
+def test_events_budget_provenance_and_inline_colormap_round_trip(tmp_path):
+    d = base()
+    d["events"] = [{"name": "onset", "time_s": 0.05, "tolerance_s": 0.01},
+                   {"name": "runout_end", "time_s": 0.6}]
+    d["budget"] = {"frames": 120, "bytes": None}
+    d["provenance"] = {"checkpoint": "column_l64_m5.pt"}
+    d["views"][0]["colormap"] = _INLINE
+    spec = Spec.from_dict(d)
+    spec.save(tmp_path / "s.json")
+    again = Spec.load(tmp_path / "s.json")
+    assert again == spec and again.provenance == {"checkpoint": "column_l64_m5.pt"}
+    assert [e.name for e in spec.events] == ["onset", "runout_end"]
+    assert spec.events[1].tolerance_s == 0.0 and spec.budget.frames == 120
+    assert spec.views[0].colormap.rgb_points == (0, 0, 0, 0, 1, 1, 1, 1)
+    assert spec.planned_frames(0.3, 0.001) == (150 // 20 + 1) + (150 // 20 + 1)

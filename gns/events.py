@@ -14,6 +14,7 @@ MOVING_SPEED_FRACTION = 0.05  # a particle moves when faster than this fraction 
 ONSET_FRACTION = 0.05  # failure onset: the speed scale first exceeds this fraction of its peak
 REST_FRACTION = 0.01  # end of runout: kinetic energy back below this fraction of its peak
 SPEED_QUANTILE = 0.95  # the speed scale of a frame
+FAST_FRACTION = 0.5  # the main runout phase: the speed scale above this fraction of its peak
 
 
 @dataclass(frozen=True)
@@ -36,9 +37,16 @@ def speeds(positions: np.ndarray, frame_interval_s: float) -> np.ndarray:
 
 def find_events(positions: np.ndarray, frame_interval_s: float) -> Events:
     sp = speeds(positions, frame_interval_s)
-    scale = np.quantile(sp, SPEED_QUANTILE, axis=1)
-    ke = (sp * sp).mean(axis=1)
-    t = np.arange(len(sp)) * frame_interval_s
+    return events_from_series(np.arange(len(sp)) * frame_interval_s,
+                              np.quantile(sp, SPEED_QUANTILE, axis=1), (sp * sp).mean(axis=1))
+
+
+def events_from_series(time_s: np.ndarray, speed_scale_m_s: np.ndarray,
+                       kinetic_m2_s2: np.ndarray) -> Events:
+    """Events from per-frame series [frames]: times (s), speed scale (m/s) and mean squared
+    speed (m^2/s^2); the same rules for a rollout and for a run's in situ statistics."""
+    t, scale, ke = (np.asarray(a, dtype=np.float64) for a in (time_s, speed_scale_m_s,
+                                                              kinetic_m2_s2))
     peak = int(np.argmax(ke))
     above = np.flatnonzero(scale >= ONSET_FRACTION * scale.max())
     onset = int(above[0]) if len(above) else 0
@@ -46,6 +54,16 @@ def find_events(positions: np.ndarray, frame_interval_s: float) -> Events:
     end = peak + int(after[0]) if len(after) else len(ke) - 1
     return Events(float(t[onset]), float(t[peak]), float(t[end]), float(t[-1]),
                   float(scale[peak]), scale, ke)
+
+
+def fast_windows(time_s: np.ndarray, speed_scale_m_s: np.ndarray,
+                 fraction: float = FAST_FRACTION) -> list[tuple[float, float]]:
+    """The intervals [t0, t1] (s) where the speed scale is at least `fraction` of its peak:
+    the main runout phase, where the critical frames are."""
+    t = np.asarray(time_s, dtype=np.float64)
+    fast = np.asarray(speed_scale_m_s) >= fraction * np.max(speed_scale_m_s)
+    edges = np.flatnonzero(np.diff(np.r_[0, fast.astype(np.int8), 0]))
+    return [(float(t[a]), float(t[b - 1])) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 def _frames(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> slice:

@@ -93,3 +93,24 @@ def write_vtk_series(directory: str | Path, positions: np.ndarray, frame_interva
     lines += ["  </Collection>", "</VTKFile>", ""]
     pvd.write_text("\n".join(lines))
     return pvd
+
+
+def read_rollout(path: str | Path) -> dict:
+    """A rollout written by write_hdf5: positions [frames, n, 3] (m), frame_interval_s (s),
+    bounds_m [3, 2] (m), particle_spacing_m (m) and the other attributes, checked."""
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != ROLLOUT_FORMAT:
+                raise ValueError(f"{path}: not a GNS rollout (format {f.attrs.get('format')!r}, "
+                                 f"expected {ROLLOUT_FORMAT!r})")
+            out = {k: (json.loads(v) if isinstance(v, str) and v[:1] in "[{" else v)
+                   for k, v in f.attrs.items()}
+            out["positions"] = f["positions"][()]
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the rollout ({exc})") from None
+    pos = out["positions"]
+    if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] < 3 or not np.isfinite(pos).all():
+        raise ValueError(f"{path}: positions must be finite [frames >= 3, n, 3], got "
+                         f"{list(pos.shape)}")
+    out["bounds_m"] = np.asarray(out["bounds_m"], dtype=np.float64).reshape(3, 2)
+    return out

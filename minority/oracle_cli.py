@@ -104,6 +104,40 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_spec(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from gns.export import read_rollout
+    from gns.oracle import Oracle, OracleOptions
+    from protocol.errors import SpecError
+    from protocol.paraview import write_pvcc_for_views
+
+    try:
+        r = read_rollout(args.rollout)
+        options = replace(OracleOptions(), run=args.run, frames=args.frames, width=args.width,
+                          height=args.height, segments=args.segments, margin=args.margin)
+        oracle = Oracle(r["positions"], float(r["frame_interval_s"]), r["bounds_m"],
+                        float(r["particle_spacing_m"]), options)
+        spec = oracle.spec({"rollout": str(args.rollout), "checkpoint": str(r.get("checkpoint")),
+                            "scene": str(r.get("scene"))})
+        spec.save(args.out)
+        cameras = write_pvcc_for_views(spec, args.pvcc) if args.pvcc else []
+    except (ValueError, SpecError, OSError) as exc:
+        print(f"minority oracle spec: error: {exc}", file=sys.stderr)
+        return 1
+    p = oracle.summary()
+    print(f"oracle: onset {p['onset_s']:.3f} s, peak motion {p['peak_s']:.3f} s, runout end "
+          f"{p['runout_end_s']:.3f} s; displacement 0-{p['displacement_range_m'][1]:.3f} m",
+          file=sys.stderr)
+    for v in spec.views:
+        print(f"  view {v.name}: {v.t_start_s:.3f}-{v.t_end_s:.3f} s in {len(v.schedule)} windows, "
+              f"every {', '.join(f'{w.every_s * 1e3:.1f}' for w in v.schedule)} ms",
+              file=sys.stderr)
+    print(f"spec -> {args.out}" + (f"; cameras -> {args.pvcc}/*.pvcc ({len(cameras)})"
+                                    if cameras else ""), file=sys.stderr)
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
@@ -233,3 +267,27 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     q.set_defaults(func=_cmd_rollout)
+
+    q = osub.add_parser("spec", help="derive a render spec from a rollout",
+                        description="Find the predicted events (failure onset, fastest motion, "
+                                    "end of runout), plan a side view over the initiation and "
+                                    "top and aerial views over the runout, framed on the "
+                                    "predicted extent; spend the frame budget where motion is "
+                                    "fastest; regions of interest around the moving particles "
+                                    "per window; colormap range from the predicted "
+                                    "displacement. Edit the JSON freely afterwards.")
+    q.add_argument("rollout", type=Path, help="rollout.h5 from minority oracle rollout")
+    q.add_argument("-o", "--out", type=Path, default=Path("spec.json"),
+                   help="spec JSON to write (default: spec.json)")
+    q.add_argument("--run", default="run", help="run id the spec is for (default: run)")
+    q.add_argument("--frames", type=int, default=120,
+                   help="frame budget, all views together (default 120)")
+    q.add_argument("--width", type=int, default=1024, help="image width, px (default 1024)")
+    q.add_argument("--height", type=int, default=768, help="image height, px (default 768)")
+    q.add_argument("--segments", type=int, default=4,
+                   help="windows per view, each with its cadence and region (default 4)")
+    q.add_argument("--margin", type=float, default=0.1,
+                   help="framing and colormap margin, fraction (default 0.1)")
+    q.add_argument("--pvcc", type=Path, metavar="DIR",
+                   help="also write each view's camera as DIR/{view}.pvcc for ParaView")
+    q.set_defaults(func=_cmd_spec)

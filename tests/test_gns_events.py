@@ -42,3 +42,16 @@ def test_moving_extent_and_ranges():
     np.testing.assert_allclose(full[:, 0], pos.reshape(-1, 3).min(axis=0))
     lo, hi = displacement_range(pos)
     assert lo == 0.0 and hi == pytest.approx(0.3, abs=1e-9)
+
+
+def test_fast_windows_cover_the_speed_bump():
+    from gns.events import fast_windows, speeds
+
+    pos, _ = _synthetic()
+    scale = np.quantile(speeds(pos, DT), 0.95, axis=1)
+    t = np.arange(len(scale)) * DT
+    (t0, t1), = fast_windows(t, scale)
+    # speed ~ 1 - cos(2 pi phase) is above half its peak for the middle half of [0.1, 0.5]
+    assert t0 == pytest.approx(0.20, abs=0.015) and t1 == pytest.approx(0.40, abs=0.015)
+    steps = np.array([1.0, 0.0, 1.0, 1.0, 0.0, 0.2])
+    assert fast_windows(t[:6], steps) == [(0.0, 0.0), (0.02, 0.03)]

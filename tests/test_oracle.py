@@ -1,0 +1,144 @@
+"""Spec derivation on a synthetic rollout with known events and extent."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gns.export import write_hdf5
+from gns.oracle import Oracle, OracleOptions, fit_camera
+from protocol import Spec
+from protocol.paraview import read_pvcc
+from render_server.camera import project
+
+DT = 0.005  # s per rollout frame
+BOUNDS = np.array([[0.0, 1.0], [0.0, 0.2], [0.0, 0.4]])
+START, STOP, TRAVEL = 0.10, 0.50, 0.3  # s, s, m
+
+
+def collapse(n: int = 600, frames: int = 161, seed: int = 1) -> np.ndarray:
+    """A 'column' x in [0, 0.1], z in [0, 0.3]: the particles above z = 0.1 slide +x by TRAVEL
+    with a smooth speed bump between START and STOP (s) while dropping to the floor; the base
+    never moves. Returns positions [frames, n, 3] (m)."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.uniform([0.0, 0.0, 0.0], [0.1, 0.2, 0.3], (n, 3))
+    t = np.arange(frames) * DT
+    phase = np.clip((t - START) / (STOP - START), 0, 1)
+    s = phase - np.sin(2 * np.pi * phase) / (2 * np.pi)  # 0 -> 1, speed ~ 1 - cos
+    pos = np.repeat(x0[None], frames, axis=0)
+    top = x0[:, 2] > 0.1
+    pos[:, top, 0] += TRAVEL * s[:, None]
+    pos[:, top, 2] -= (x0[top, 2] - 0.1)[None] * 0.8 * s[:, None]
+    return pos
+
+
+def step_times(duration_s: float, dt_s: float) -> np.ndarray:
+    t = [0.0]
+    while t[-1] < duration_s:
+        t.append(t[-1] + dt_s)
+    return np.array(t)
+
+
+def rendered(spec: Spec, view, times: np.ndarray) -> np.ndarray:
+    return np.array([t for k, t in enumerate(times[1:], 1) if view.wants(k, t, times[k - 1])])
+
+
+@pytest.fixture(scope="module")
+def oracle():
+    return Oracle(collapse(), DT, BOUNDS, 0.01, OracleOptions(run="synthetic", frames=90))
+
+
+def test_events_and_windows_are_found(oracle):
+    e = oracle.events
+    assert START <= e.onset_s <= START + 0.07  # 5% of the peak speed, soon after the start
+    assert e.peak_s == pytest.approx(0.5 * (START + STOP), abs=2 * DT)
+    assert STOP - 0.07 <= e.runout_end_s <= STOP + DT
+    w = oracle.windows()
+    # the fast phase (speed >= half its peak) is the middle half of [START, STOP]
+    assert w["runout"][0] == pytest.approx(START + 0.25 * (STOP - START), abs=2 * DT)
+    assert w["initiation"][0] <= e.onset_s and w["initiation"][1] >= w["runout"][0]
+    lo, hi = oracle.displacement
+    assert lo == 0.0 and hi == pytest.approx(np.hypot(TRAVEL, 0.8 * 0.2), rel=0.02)
+
+
+def test_spec_views_events_range_and_budget(oracle):
+    spec = oracle.spec({"rollout": "synthetic"})
+    assert [v.name for v in spec.views] == ["side", "top", "aerial"]
+    assert [e.name for e in spec.events] == ["failure_onset", "runout_start", "peak_motion",
+                                             "runout_end"]
+    hi = oracle.displacement[1]
+    assert all(v.range == (0.0, pytest.approx(hi * 1.1)) for v in spec.views)
+    assert spec.provenance["predicted"]["onset_s"] == oracle.events.onset_s
+    times = step_times(0.8, 1.3e-4)  # an MPM-like step
+    counts = [len(rendered(spec, v, times)) for v in spec.views]
+    assert sum(counts) <= spec.budget.frames == 90 and sum(counts) >= 85
+    for v in spec.views:  # every frame inside the view's windows
+        t = rendered(spec, v, times)
+        assert t.min() >= v.t_start_s and t.max() <= v.t_end_s
+    # cadence where motion is fastest: the runout's densest window is the fastest one
+    top = spec.views[1]
+    weights = [oracle.weight(w.t_start_s, w.t_end_s) for w in top.schedule]
+    assert np.argmin([w.every_s for w in top.schedule]) == np.argmax(weights)
+    assert Spec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
+
+
+def test_regions_hold_the_moving_particles_and_leave_the_static_base_out(oracle):
+    spec = oracle.spec()
+    pos, speed = oracle.positions, np.zeros(oracle.positions.shape[:2])
+    speed[1:] = np.linalg.norm(np.diff(pos, axis=0), axis=2) / DT
+    moving_total = moving_inside = 0
+    for k in range(1, len(pos)):
+        regions = spec.active_regions(k * DT)
+        if regions is None or regions == ():
+            continue
+        moving = speed[k] > oracle.threshold
+        inside = np.zeros(len(pos[k]), bool)
+        for r in regions:
+            inside |= np.all((pos[k] >= r.lo_m) & (pos[k] <= r.hi_m), axis=1)
+        moving_total += moving.sum()
+        moving_inside += (moving & inside).sum()
+        assert not inside[pos[0][:, 2] < 0.05].any() or k * DT < START  # the base: left out
+    assert moving_total > 0 and moving_inside == moving_total
+
+
+def test_cameras_frame_their_regions(oracle):
+    spec = oracle.spec()
+    for v in spec.views:
+        boxes = [spec.region(n) for n in v.regions]
+        corners = np.array([[x, y, z] for b in boxes for x in (b.lo_m[0], b.hi_m[0])
+                            for y in (b.lo_m[1], b.hi_m[1]) for z in (b.lo_m[2], b.hi_m[2])])
+        px = project(corners, v.camera, v.width, v.height)
+        assert (px >= -1).all() and (px[:, 0] <= v.width + 1).all() and (px[:, 1] <= v.height + 1).all()
+        # tight: the framed box fills most of the image along one axis
+        span = px.max(axis=0) - px.min(axis=0)
+        assert max(span[0] / v.width, span[1] / v.height) > 0.7
+
+
+def test_fit_camera_touches_the_frustum():
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.4, 0.1, 0.2])
+    cam = Spec.from_dict({"version": 2, "run": "r", "views": [{
+        "name": "v", "camera": fit_camera(lo, hi, (0, 1, 0), (0, 0, 1), 4 / 3)}]}).views[0].camera
+    corners = np.array([[x, y, z] for x in (0, 0.4) for y in (0, 0.1) for z in (0, 0.2)])
+    px = project(corners, cam, 400, 300)
+    assert px[:, 0].min() == pytest.approx(0.0, abs=0.5) or px[:, 1].min() == pytest.approx(0.0, abs=0.5)
+
+
+def test_cli_writes_spec_and_cameras(tmp_path):
+    pos = collapse(frames=121)
+    write_hdf5(tmp_path / "rollout.h5", pos, DT, attrs={
+        "bounds_m": BOUNDS.tolist(), "particle_spacing_m": 0.01, "scene": "synthetic",
+        "checkpoint": "none"})
+    out = tmp_path / "spec.json"
+    proc = subprocess.run([sys.executable, "-m", "minority", "oracle", "spec",
+                           str(tmp_path / "rollout.h5"), "-o", str(out), "--run", "r1",
+                           "--frames", "60", "--pvcc", str(tmp_path / "cams")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    spec = Spec.load(out)
+    assert spec.run == "r1" and spec.budget.frames == 60 and "view side" in proc.stderr
+    assert read_pvcc(tmp_path / "cams" / "top.pvcc")[0] == spec.views[1].camera
+    bad = subprocess.run([sys.executable, "-m", "minority", "oracle", "spec", str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 1 and "cannot read the rollout" in bad.stderr

@@ -1,9 +1,9 @@
 """The oracle: a render spec derived from a predicted run (a GNS rollout).
 
 From the trajectory [frames, n, 3] (m) it finds the events (failure onset, fastest motion,
-end of runout), splits the run into an initiation window (onset to the start of the fast
-phase) and a runout window (fast phase to rest), and plans three views as the reference
-paper chose them: a side view across the flow framing the column during initiation, and a
+end of runout), splits the run into an initiation window (onset to the fastest motion)
+and a runout window (fast phase to rest), and plans three views as the reference paper
+chose them: a side view across the flow framing the column during initiation, and a
 top and an aerial view framing the deposit during runout. Each view's window is cut into
 segments; each segment gets frames in proportion to how fast the material moves then
 (within the frame budget) and a region of interest: the padded extent of the particles
@@ -102,14 +102,14 @@ class Oracle:
 
     # --- windows --------------------------------------------------------------------
     def windows(self) -> dict[str, tuple[float, float]]:
-        """Initiation: onset to the start of the fast phase; runout: the fast phase to rest
-        (both padded by a frame each side, within the rollout)."""
+        """Initiation: onset to the fastest motion (the column failing); runout: from the
+        start of the fast phase to rest (both padded by a frame, within the rollout)."""
         e = self.events
         fast = fast_windows(self.time, self.scale)
         fast_start = min(max(fast[0][0], e.onset_s + self.dt), e.peak_s) if fast else e.peak_s
         end = max(e.runout_end_s, fast_start + self.dt)
         pad = self.dt
-        return {"initiation": (max(0.0, e.onset_s - pad), min(fast_start + pad, e.duration_s)),
+        return {"initiation": (max(0.0, e.onset_s - pad), min(e.peak_s + pad, e.duration_s)),
                 "runout": (max(0.0, fast_start - pad), min(end + pad, e.duration_s))}
 
     def region(self, t0: float, t1: float) -> np.ndarray:

@@ -328,8 +328,16 @@ class Stats(_JsonMessage):
     hist_elsewhere: list[int]  # [SPEED_BINS] the others
     sent_ns: int = 0
 
-    def to_json(self) -> dict:
-        return {k: getattr(self, k) for k in _STATS_KEYS}
+    def to_json(self) -> dict:  # numpy scalars become plain JSON numbers
+        d = {k: getattr(self, k) for k in _STATS_KEYS}
+        for k in ("time_s", "speed_sq_sum_m2_s2", "max_speed_m_s", "max_displacement_m"):
+            d[k] = float(d[k])
+        for k in ("rank", "step", "count"):
+            d[k] = int(d[k])
+        d["windows_open"] = bool(d["windows_open"])
+        d["hist_in_regions"] = [int(c) for c in d["hist_in_regions"]]
+        d["hist_elsewhere"] = [int(c) for c in d["hist_elsewhere"]]
+        return d
 
     @classmethod
     def from_json(cls, obj: dict, sent_ns: int = 0) -> Stats:

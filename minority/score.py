@@ -1,0 +1,199 @@
+"""`minority report score SPEC RUN.mcap`: the oracle's predictions against the full run.
+
+The actual run is known from the ranks' in situ Stats (speed histograms, kinetic energy,
+displacement; every rank on a fixed cadence of simulated time), the frames the server
+rendered and the chunk bytes it received, all in the run's MCAP log. The same event rules
+as the oracle's (gns.events) apply to the actual series.
+
+Critical windows: where the actual speed scale is at least half its peak (the main runout
+phase). The equal-budget baseline renders the same number of frames on a fixed cadence over
+the run and sends every particle at each of its steps.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
+from protocol.log import read_log
+from protocol.messages import SPEED_EDGES_M_S, Chunk, Frame, Stats
+from protocol.spec import Spec
+
+EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
+EDGES = np.asarray(SPEED_EDGES_M_S)
+
+
+class ScoreError(ValueError):
+    pass
+
+
+@dataclass
+class RunRecord:
+    """What the log says the run did."""
+
+    time_s: np.ndarray  # [k] stats times (s), complete steps only
+    hist: np.ndarray  # [k, bins] all particles' speeds
+    hist_in: np.ndarray  # [k, bins] particles inside the open regions
+    kinetic_m2_s2: np.ndarray  # [k] mean |v|^2
+    windows_open: np.ndarray  # [k] bool
+    particles: int
+    max_displacement_m: float
+    frame_times_s: dict[str, list[float]] = field(default_factory=dict)  # per view
+    chunk_bytes: int = 0
+    chunk_steps: dict[int, tuple[float, int]] = field(default_factory=dict)  # step: (t, B/p)
+    incomplete_stats_steps: int = 0
+
+
+def quantile_from_histogram(hist: np.ndarray, q: float) -> np.ndarray:
+    """Per row of hist [k, bins] the q-quantile speed (m/s), log-interpolated within a bin."""
+    lo = np.r_[EDGES[0] * 0.1, EDGES]  # bin i spans [lo[i], hi[i])
+    hi = np.r_[EDGES, EDGES[-1] * 10]
+    cum = np.cumsum(hist, axis=1)
+    out = np.zeros(len(hist))
+    for r in range(len(hist)):
+        total = cum[r, -1]
+        if total == 0:
+            continue
+        i = int(np.searchsorted(cum[r], q * total))
+        below = cum[r, i - 1] if i else 0
+        frac = (q * total - below) / max(hist[r, i], 1)
+        out[r] = lo[i] * (hi[i] / lo[i]) ** frac if i else 0.0  # the lowest bin reads as rest
+    return out
+
+
+def moving_count(hist: np.ndarray, threshold_m_s: float) -> np.ndarray:
+    """Particles per row faster than the threshold: bins whose lower edge is at or above it."""
+    lower = np.r_[0.0, EDGES]
+    return hist[:, lower >= threshold_m_s].sum(axis=1)
+
+
+def load_run(path: str | Path) -> RunRecord:
+    by_step: dict[int, list[Stats]] = defaultdict(list)
+    frames: dict[str, list[float]] = defaultdict(list)
+    chunk_bytes, chunk_steps = 0, {}
+    for rec in read_log(path):
+        kind = rec.topic.split("/")[2] if rec.topic.count("/") >= 2 else ""
+        if kind not in ("stats", "frame", "chunk"):
+            continue
+        msg = rec.decode()
+        if isinstance(msg, Stats):
+            by_step[msg.step].append(msg)
+        elif isinstance(msg, Frame):
+            frames[msg.view].append(msg.time_s)
+        elif isinstance(msg, Chunk):
+            chunk_bytes += len(rec.data)
+            per_particle = sum(a.dtype.itemsize * (a.size // max(len(a), 1))
+                               for a in msg.fields.values() if a.ndim)
+            if msg.count:
+                chunk_steps.setdefault(msg.step, (msg.time_s, per_particle))
+    if not by_step:
+        raise ScoreError(f"{path}: no stats records (was the run published with stats on?)")
+    ranks = max(len({s.rank for s in v}) for v in by_step.values())
+    steps = sorted(k for k, v in by_step.items() if len({s.rank for s in v}) == ranks)
+    rows = [by_step[k] for k in steps]
+    hist_in = np.array([np.sum([s.hist_in_regions for s in r], axis=0) for r in rows])
+    hist_out = np.array([np.sum([s.hist_elsewhere for s in r], axis=0) for r in rows])
+    count = np.array([sum(s.count for s in r) for r in rows])
+    return RunRecord(
+        time_s=np.array([r[0].time_s for r in rows]), hist=hist_in + hist_out, hist_in=hist_in,
+        kinetic_m2_s2=np.array([sum(s.speed_sq_sum_m2_s2 for s in r) for r in rows])
+        / np.maximum(count, 1),
+        windows_open=np.array([r[0].windows_open for r in rows]),
+        particles=int(count.max()),
+        max_displacement_m=max(s.max_displacement_m for r in rows for s in r),
+        frame_times_s=dict(frames), chunk_bytes=chunk_bytes, chunk_steps=chunk_steps,
+        incomplete_stats_steps=len(by_step) - len(steps))
+
+
+def _inside(times, windows) -> int:
+    t = np.asarray(times, dtype=np.float64)
+    return int(sum(((t >= a) & (t <= b)).sum() for a, b in windows))
+
+
+def score(spec: Spec, run: RunRecord) -> dict:
+    """Predicted vs actual, and the oracle's schedule vs a fixed cadence of equal budget."""
+    scale = quantile_from_histogram(run.hist, SPEED_QUANTILE)
+    actual = events_from_series(run.time_s, scale, run.kinetic_m2_s2)
+    critical = fast_windows(run.time_s, scale)
+    actual_times = {"failure_onset": actual.onset_s, "peak_motion": actual.peak_s,
+                    "runout_end": actual.runout_end_s,
+                    "runout_start": critical[0][0] if critical else actual.peak_s}
+    interval = float(np.median(np.diff(run.time_s))) if len(run.time_s) > 1 else 0.0
+    events = []
+    for e in spec.events:
+        if e.name not in actual_times:
+            continue
+        a = actual_times[e.name]
+        err = e.time_s - a
+        events.append({"event": e.name, "predicted_s": e.time_s, "actual_s": a, "error_s": err,
+                       "relative_error": err / a if a > 0 else None,
+                       "within_10pct": abs(err) <= max(EVENT_TOLERANCE * a, interval)})
+    predicted = spec.provenance.get("predicted", {})
+    pred_disp = (predicted.get("displacement_range_m") or [0.0, float("nan")])[1]
+    threshold = MOVING_SPEED_FRACTION * actual.peak_speed_m_s
+    open_ = run.windows_open
+    moving_in = moving_count(run.hist_in[open_], threshold).sum()
+    moving_all = moving_count(run.hist[open_], threshold).sum()
+    frame_times = [t for ts in run.frame_times_s.values() for t in ts]
+    n_frames, duration = len(frame_times), float(run.time_s[-1])
+    fixed_times = (np.arange(n_frames) + 0.5) * duration / max(n_frames, 1)
+    oracle_in, fixed_in = _inside(frame_times, critical), _inside(fixed_times, critical)
+    views = max(len(spec.views), 1)
+    per_particle = (np.median([b for _, b in run.chunk_steps.values()])
+                    if run.chunk_steps else 0.0)
+    every_particle = sum(run.particles * b for _, b in run.chunk_steps.values())
+    fixed_bytes = int(np.ceil(n_frames / views) * run.particles * per_particle)
+    return {
+        "events": events,
+        "displacement_max_m": {"predicted": pred_disp, "actual": run.max_displacement_m,
+                               "relative_error": (pred_disp - run.max_displacement_m)
+                               / run.max_displacement_m},
+        "critical_windows_s": critical,
+        "moving_speed_m_s": threshold,
+        "roi_moving_fraction": float(moving_in / moving_all) if moving_all else None,
+        "frames": {"oracle": n_frames, "oracle_in_critical": oracle_in,
+                   "fixed_cadence_in_critical": fixed_in,
+                   "ratio": oracle_in / fixed_in if fixed_in else None},
+        "bytes": {"sent": run.chunk_bytes, "every_particle_at_rendered_steps": every_particle,
+                  "fraction": run.chunk_bytes / every_particle if every_particle else None,
+                  "fixed_cadence": fixed_bytes,
+                  "ratio_to_fixed": run.chunk_bytes / fixed_bytes if fixed_bytes else None},
+        "budget": {"frames": spec.budget.frames, "bytes": spec.budget.bytes},
+        "stats_steps": len(run.time_s), "incomplete_stats_steps": run.incomplete_stats_steps,
+        "particles": run.particles,
+    }
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None or x != x else f"{100 * x:+.1f}%"
+
+
+def markdown(result: dict) -> str:
+    lines = ["## Oracle score", "", "| event | predicted (s) | actual (s) | error | within 10% |",
+             "|---|---|---|---|---|"]
+    for e in result["events"]:
+        lines.append(f"| {e['event']} | {e['predicted_s']:.3f} | {e['actual_s']:.3f} | "
+                     f"{_pct(e['relative_error'])} ({e['error_s'] * 1e3:+.0f} ms) | "
+                     f"{'yes' if e['within_10pct'] else 'no'} |")
+    d, f, b = result["displacement_max_m"], result["frames"], result["bytes"]
+    roi = result["roi_moving_fraction"]
+    lines += ["", f"- displacement max: predicted {d['predicted']:.3f} m, actual "
+                  f"{d['actual']:.3f} m ({_pct(d['relative_error'])})",
+              f"- moving particles (faster than {result['moving_speed_m_s']:.3f} m/s) inside the "
+              f"regions of interest: " + ("n/a" if roi is None else f"{100 * roi:.2f}%"),
+              "- critical windows (speed >= half its peak): "
+              + ", ".join(f"{a:.3f}-{b_:.3f} s" for a, b_ in result["critical_windows_s"]),
+              f"- frames inside them: oracle {f['oracle_in_critical']} of {f['oracle']}, fixed "
+              f"cadence with the same budget {f['fixed_cadence_in_critical']}"
+              + ("" if f["ratio"] is None else f" (ratio {f['ratio']:.2f}x)"),
+              f"- bytes sent: {b['sent']:,} = "
+              + ("n/a" if b["fraction"] is None else f"{100 * b['fraction']:.1f}%")
+              + f" of every particle at every rendered step; fixed cadence {b['fixed_cadence']:,}"
+              + ("" if b["ratio_to_fixed"] is None else f" (ratio {b['ratio_to_fixed']:.2f})"),
+              f"- {result['particles']:,} particles, {result['stats_steps']} stats steps"
+              f" ({result['incomplete_stats_steps']} incomplete, left out)", ""]
+    return "\n".join(lines)

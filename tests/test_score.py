@@ -1,0 +1,112 @@
+"""The oracle's score on a hand-made log with a known run."""
+
+import numpy as np
+import pytest
+
+from minority.score import load_run, markdown, moving_count, quantile_from_histogram, score
+from protocol import Chunk, Frame, Spec, Stats
+from protocol.log import LogWriter
+from protocol.messages import SPEED_BINS, speed_histogram
+
+RUN = "scored"
+N_RANK = 500  # particles per rank, 2 ranks
+STATS_DT = 0.01  # s
+PNG = (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00\x00\x04\x00\x00\x00\x03"
+       b"\x08\x02\x00\x00\x00")
+
+
+def speed_profile(t: float) -> float:
+    """Peak speed (m/s): a bump between 0.1 and 0.5 s, 2 m/s at 0.3 s."""
+    phase = np.clip((t - 0.1) / 0.4, 0, 1)
+    return float(1.0 - np.cos(2 * np.pi * phase))
+
+
+def make_spec(views=1) -> Spec:
+    cam = {"position": [0, -1, 0], "focal_point": [0, 0, 0]}
+    return Spec.from_dict({
+        "version": 2, "run": RUN,
+        "views": [{"name": f"v{i}", "camera": cam, "schedule": [{"every_steps": 1}]}
+                  for i in range(views)],
+        "events": [{"name": "failure_onset", "time_s": 0.13},
+                   {"name": "peak_motion", "time_s": 0.36},  # 20% late
+                   {"name": "runout_end", "time_s": 0.48}],
+        "provenance": {"predicted": {"displacement_range_m": [0.0, 0.33]}}})
+
+
+def write_log(path, frame_times, chunk_particles=100):
+    rng = np.random.default_rng(0)
+    with LogWriter(path) as log:
+        ns = 1
+        for k, t in enumerate(np.arange(0, 0.8001, STATS_DT)):
+            for rank in range(2):
+                # half of each rank's particles move at the profile's speed (outside the
+                # regions on rank 1 between 0.2 and 0.3 s), the rest rest
+                v = np.zeros(N_RANK)
+                v[: N_RANK // 2] = speed_profile(t) * rng.uniform(0.9, 1.0, N_RANK // 2)
+                inside = np.ones(N_RANK, bool)
+                if rank == 1 and 0.2 <= t <= 0.3:
+                    inside[:10] = False
+                h_in, h_out = speed_histogram(v[inside]), speed_histogram(v[~inside])
+                log.write(Stats(RUN, rank, k, float(t), N_RANK, float((v * v).sum()),
+                                float(v.max()), 0.3 * min(t / 0.5, 1.0), 0.05 <= t <= 0.6,
+                                h_in, h_out), log_ns=ns)
+                ns += 1
+        for step, t in enumerate(frame_times):
+            for rank in range(2):
+                pos = rng.uniform(0, 1, (chunk_particles, 3)).astype(np.float32)
+                disp = np.zeros((chunk_particles, 3), np.float32)
+                log.write(Chunk(RUN, step, float(t), rank, 2, 0.01, ((0, 0, 0), (1, 1, 1)),
+                                {"positions": pos, "displacement": disp}), log_ns=ns)
+                ns += 1
+            log.write(Frame(RUN, "v0", step, float(t), 4, 3, PNG), log_ns=ns)
+            ns += 1
+
+
+def test_histogram_quantile_and_moving_count():
+    v = np.geomspace(0.01, 1.0, 1001)
+    h = np.array([speed_histogram(v)])
+    assert quantile_from_histogram(h, 0.5)[0] == pytest.approx(0.1, rel=0.13)  # a bin is 26%
+    assert moving_count(h, 0.1)[0] == pytest.approx(500, abs=60)
+    assert h.shape == (1, SPEED_BINS)
+
+
+def test_score_of_a_known_run(tmp_path):
+    frames = np.linspace(0.22, 0.38, 20)  # all inside the fast phase
+    write_log(tmp_path / "run.mcap", frames)
+    run = load_run(tmp_path / "run.mcap")
+    assert run.particles == 2 * N_RANK and len(run.time_s) == 81
+    assert run.max_displacement_m == pytest.approx(0.3)
+    result = score(make_spec(), run)
+    ev = {e["event"]: e for e in result["events"]}
+    # speed >= 5% of the peak from ~0.13 s; the fast phase (>= half) is 0.2-0.4 s
+    assert ev["failure_onset"]["actual_s"] == pytest.approx(0.13, abs=0.015)
+    assert ev["peak_motion"]["actual_s"] == pytest.approx(0.30, abs=0.011)
+    assert not ev["peak_motion"]["within_10pct"] and ev["failure_onset"]["within_10pct"]
+    (a, b), = result["critical_windows_s"]
+    assert a == pytest.approx(0.2, abs=0.011) and b == pytest.approx(0.4, abs=0.011)
+    assert result["displacement_max_m"]["relative_error"] == pytest.approx(0.1)
+    # moving particles outside the regions: 10 of 500 on rank 1 at the stats steps in 0.2-0.3 s
+    open_steps = [t for t in run.time_s if 0.05 <= t <= 0.6]
+    moving = sum(500 for t in open_steps if speed_profile(t) * 0.9 > 0.05 * 2.0 * 0.98)
+    outside = 10 * sum(1 for t in open_steps if 0.2 <= t <= 0.3 + 1e-9)
+    assert result["roi_moving_fraction"] == pytest.approx(1 - outside / moving, abs=0.002)
+    f = result["frames"]
+    assert f["oracle"] == 20 and f["oracle_in_critical"] == 20
+    # 20 frames evenly over 0.8 s: those in [0.2, 0.4] (a quarter of the run)
+    assert f["fixed_cadence_in_critical"] == 5 and f["ratio"] == pytest.approx(4.0)
+    b = result["bytes"]
+    per_particle = 12 + 12  # positions and displacement, float32 x 3 each
+    assert b["every_particle_at_rendered_steps"] == 20 * 1000 * per_particle
+    assert b["sent"] > 20 * 200 * per_particle  # payload headers on top
+    assert 0.2 < b["fraction"] < 0.24  # 200 of 1000 particles, plus the chunk headers
+    assert b["fixed_cadence"] == 20 * 1000 * per_particle
+    text = markdown(result)
+    assert "ratio 4.00x" in text and "| peak_motion |" in text
+
+
+def test_no_stats_is_a_clear_error(tmp_path):
+    write_log_empty = tmp_path / "empty.mcap"
+    with LogWriter(write_log_empty):
+        pass
+    with pytest.raises(ValueError, match="no stats records"):
+        load_run(write_log_empty)

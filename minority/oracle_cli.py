@@ -138,6 +138,19 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_preview(args: argparse.Namespace) -> int:
+    from minority.preview import preview
+    from protocol.errors import SpecError
+
+    try:
+        out = preview(args.spec, args.rollout, args.out, args.columns, args.thumb_width)
+    except (ValueError, SpecError, OSError) as exc:
+        print(f"minority oracle preview: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"contact sheet -> {out}", file=sys.stderr)
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
@@ -291,3 +304,15 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--pvcc", type=Path, metavar="DIR",
                    help="also write each view's camera as DIR/{view}.pvcc for ParaView")
     q.set_defaults(func=_cmd_spec)
+
+    q = osub.add_parser("preview", help="render a spec's views on a rollout (contact sheet)",
+                        description="Render each view of the spec on the rollout's frames that "
+                                    "its schedule selects (regions of interest applied), a row "
+                                    "per view, and save one PNG to judge before the full run.")
+    q.add_argument("spec", type=Path, help="spec JSON (minority oracle spec, or edited)")
+    q.add_argument("rollout", type=Path, help="rollout.h5 from minority oracle rollout")
+    q.add_argument("-o", "--out", type=Path, default=Path("preview.png"),
+                   help="contact sheet PNG (default: preview.png)")
+    q.add_argument("--columns", type=int, default=6, help="frames per view (default 6)")
+    q.add_argument("--thumb-width", type=int, default=256, help="thumbnail width, px")
+    q.set_defaults(func=_cmd_preview)

@@ -142,3 +142,31 @@ def test_cli_writes_spec_and_cameras(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "minority", "oracle", "spec", str(out)],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "cannot read the rollout" in bad.stderr
+
+
+def test_preview_contact_sheet(tmp_path):
+    from PIL import Image
+
+    from minority.preview import contact_sheet, scheduled_frames
+
+    pos = collapse(frames=121)
+    oracle = Oracle(pos, DT, BOUNDS, 0.01, OracleOptions(run="p", frames=30, width=160,
+                                                         height=120))
+    spec = oracle.spec()
+    sheet = contact_sheet(spec, pos, DT, 0.01, columns=4, thumb_width=80, log=open("/dev/null", "w"))
+    assert sheet.size == (4 * 80, 3 * (60 + 14) + 14)
+    t = np.arange(len(pos)) * DT
+    side = scheduled_frames(spec, spec.views[0], t)
+    assert side and all(spec.views[0].t_start_s <= t[k] <= spec.views[0].t_end_s for k in side)
+    # the first side thumbnail is not blank: particles drawn over the white background
+    thumb = np.asarray(sheet.crop((0, 28, 80, 28 + 60)))
+    assert (thumb.sum(axis=2) < 600).sum() > 50
+    write_hdf5(tmp_path / "r.h5", pos, DT, attrs={"bounds_m": BOUNDS.tolist(),
+                                                  "particle_spacing_m": 0.01})
+    spec.save(tmp_path / "s.json")
+    proc = subprocess.run([sys.executable, "-m", "minority", "oracle", "preview",
+                           str(tmp_path / "s.json"), str(tmp_path / "r.h5"), "-o",
+                           str(tmp_path / "sheet.png"), "--columns", "3"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert Image.open(tmp_path / "sheet.png").size[0] == 3 * 256

@@ -59,47 +59,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
-    import time
-
     import torch
 
-    from gns.export import write_hdf5, write_vtk_series
-    from gns.rollout import RolloutError, initial_state, rollout
+    from gns.predict import predict
+    from gns.rollout import RolloutError
     from gns.runtime import tune_allocator
-    from gns.train import load_checkpoint
     from sim.scene import scene_path
 
     tune_allocator()
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        model, ckpt = load_checkpoint(args.checkpoint, args.device)
-        st = ckpt["stats"]
-        path = scene_path(args.scene)
-        init = initial_state(path, st["particle_spacing_m"], st["frame_interval_s"],
-                             model.config.input_velocities)
-        duration = args.duration or init.duration_s
-        frames = max(1, round(duration / st["frame_interval_s"]))
-        n = init.positions.shape[1]
-        print(f"rollout: {init.name}, {n} particles at {st['particle_spacing_m']} m, "
-              f"{frames} frames of {st['frame_interval_s']} s", file=sys.stderr)
-        t0 = time.perf_counter()
-        pos, timing = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
-                              device=args.device, progress=True)
-        wall = time.perf_counter() - t0
-        pos = pos[model.config.input_velocities:]  # the history is the resting state: t = 0
-        h5 = write_hdf5(args.out / "rollout.h5", pos, st["frame_interval_s"], attrs={
-            "scene": str(path), "checkpoint": str(args.checkpoint),
-            "friction_angle_deg": init.friction_deg, "bounds_m": init.bounds_m,
-            "particle_spacing_m": st["particle_spacing_m"], "wall_s": wall})
-        if args.vtk_every:
-            write_vtk_series(args.out / "vtk", pos, st["frame_interval_s"],
-                             every=args.vtk_every)
+        p = predict(args.checkpoint, scene_path(args.scene), args.duration, args.device,
+                    progress=True, log=sys.stderr)
+        h5 = p.write(args.out, args.vtk_every)
     except (RolloutError, ValueError, OSError, KeyError) as exc:
         print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
         return 1
-    print(f"rollout: {frames} frames in {wall:.1f} s (graph {timing['graph_s']:.1f} s, model "
-          f"{timing['model_s']:.1f} s, {timing['clamped']} positions clamped to the domain) "
+    t = p.timing
+    print(f"rollout: {len(p.positions) - 1} frames in {p.wall_s:.1f} s (graph {t['graph_s']:.1f} "
+          f"s, model {t['model_s']:.1f} s, {t['clamped']} positions clamped to the domain) "
           f"-> {h5}", file=sys.stderr)
     return 0
 

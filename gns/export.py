@@ -11,6 +11,7 @@ import h5py
 import numpy as np
 
 ROLLOUT_FORMAT = "minority-gns-rollout/1"
+SIM_FORMAT = "minority-sim-trajectory/1"  # `minority sim` output, read as a prediction too
 
 
 def velocities(positions: np.ndarray, frame_interval_s: float) -> np.ndarray:
@@ -96,16 +97,20 @@ def write_vtk_series(directory: str | Path, positions: np.ndarray, frame_interva
 
 
 def read_rollout(path: str | Path) -> dict:
-    """A rollout written by write_hdf5: positions [frames, n, 3] (m), frame_interval_s (s),
-    bounds_m [3, 2] (m), particle_spacing_m (m) and the other attributes, checked."""
+    """A rollout written by write_hdf5, or an MPM run's HDF5 (`minority sim`, frames every
+    output_interval_s): positions [frames, n, 3] (m), frame_interval_s (s), bounds_m [3, 2]
+    (m), particle_spacing_m (m) and the other attributes, checked."""
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != ROLLOUT_FORMAT:
-                raise ValueError(f"{path}: not a GNS rollout (format {f.attrs.get('format')!r}, "
-                                 f"expected {ROLLOUT_FORMAT!r})")
+            fmt = f.attrs.get("format")
+            if fmt not in (ROLLOUT_FORMAT, SIM_FORMAT):
+                raise ValueError(f"{path}: not a rollout (format {fmt!r}, expected "
+                                 f"{ROLLOUT_FORMAT!r} or an MPM run's {SIM_FORMAT!r})")
             out = {k: (json.loads(v) if isinstance(v, str) and v[:1] in "[{" else v)
                    for k, v in f.attrs.items()}
             out["positions"] = f["positions"][()]
+            if fmt == SIM_FORMAT:  # an MPM run (e.g. a coarse one) as the prediction
+                out["frame_interval_s"] = float(out["output_interval_s"])
     except OSError as exc:
         raise ValueError(f"{path}: cannot read the rollout ({exc})") from None
     pos = out["positions"]

@@ -170,3 +170,18 @@ def test_preview_contact_sheet(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert Image.open(tmp_path / "sheet.png").size[0] == 3 * 256
+
+
+def test_an_mpm_run_reads_as_a_prediction(tmp_path):
+    import h5py
+
+    from gns.export import SIM_FORMAT, read_rollout
+
+    pos = collapse(frames=41)
+    with h5py.File(tmp_path / "mpm.h5", "w") as f:
+        f["positions"] = pos.astype(np.float32)
+        f.attrs.update({"format": SIM_FORMAT, "output_interval_s": 0.02,
+                        "bounds_m": BOUNDS, "particle_spacing_m": 0.01})
+    r = read_rollout(tmp_path / "mpm.h5")
+    assert r["frame_interval_s"] == 0.02 and r["positions"].shape == pos.shape
+    assert r["bounds_m"].shape == (3, 2)

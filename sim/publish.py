@@ -1,9 +1,22 @@
 """What a rank publishes: the spec's fields of the particles in its regions of interest, at
-the steps its schedule asks for, without ever blocking the simulation.
+the steps its schedule asks for, and flow statistics on a fixed cadence of simulated time,
+without ever blocking the simulation.
 
-* `cull` picks the particles inside the requested regions (all when none) and computes only
-  the requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
+* `cull` picks the particles inside the requested regions (all when none), keeps every
+  `decimate`-th of them by original id (`pid % decimate == 0`), and computes only the
+  requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
   `particle_bytes`.
+* `flow_stats` sums up a rank's particles for a `Stats` message (minority/{run}/stats):
+  count, sum of |v|^2, max |v|, max |x - x0|, and the speed histograms of the particles
+  inside the regions of the spec's open windows and elsewhere.
+* `RankPublisher.publish` runs at every sim step. It keeps the time the simulation reported
+  for the previous step and passes it to `Spec.request(step, time_s, prev_time_s)` and in
+  the chunk (`Chunk.prev_time_s`), so windows with an `every_s` cadence fire at exactly the
+  steps the render server computes from the chunk (each instant t_start_s + k every_s falls
+  to the first step whose (prev_time_s, time_s] holds it; step 0: when its time is one).
+  Stats follow the same rule with their own cadence (`PublishOptions.stats_every_s`,
+  instants k * stats_every_s from t = 0, step 0 included), whether or not a view is due and
+  whether or not the spec is known.
 * `RankPublisher` opens the rank's zenoh session (a client: no server -> it runs on and
   says why once), declares the rank's liveliness token, fetches the spec (a zenoh get with
   a timeout; a `--spec` file is the fallback), follows spec updates, and hands encoded
@@ -18,8 +31,10 @@ the steps its schedule asks for, without ever blocking the simulation.
   that link without telling the sender until the receiver reads again. So a put that took
   that long is a *stall*: it and every chunk after it count as dropped (not put) until a
   spec query to the server is answered again (a probe every PROBE_INTERVAL_S).
+* Stats messages go through the same outbox, bounded on their own (OUTBOX_STATS, the oldest
+  dropped first, counted in `stats_dropped`); spec and events always enter.
 * With a record path, the sender thread also writes every message it takes from the
-  outbox (spec, chunks, events, as published) to that rank's MCAP file.
+  outbox (spec, chunks, stats, events, as published) to that rank's MCAP file.
 """
 
 from __future__ import annotations
@@ -27,6 +42,7 @@ from __future__ import annotations
 import collections
 import copy
 import json
+import math
 import sys
 import threading
 import time
@@ -39,15 +55,26 @@ import zenoh
 
 from protocol import keys
 from protocol.errors import ProtocolError, SpecError
-from protocol.messages import Chunk, Event, EventKind, decode_as
+from protocol.messages import (
+    SPEED_BINS,
+    SPEED_EDGES_M_S,
+    Chunk,
+    Event,
+    EventKind,
+    Stats,
+    decode_as,
+)
 from protocol.session import NetworkOptions, QoS, Role, make_config, put
 from protocol.spec import DataRequest, Region, Spec
+from protocol.view import Window
 from sim.state import ParticleState
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
 DRAIN_TIMEOUT_S = 5.0  # at close: wait this long for the outbox to empty
 OUTBOX_CHUNKS = 4  # chunks queued for the sender at most (the oldest is dropped)
 OUTBOX_BYTES = 256 * 1024 * 1024  # and at most this many bytes of them
+OUTBOX_STATS = 64  # Stats messages queued for the sender at most (the oldest is dropped)
+STATS_EVERY_S = 0.005  # s of simulated time between a rank's Stats messages; 0: none
 SENDER_POLL_S = 0.1
 BLOCK_TIMEOUT_S = 2.0  # zenoh gives a blocked put up after this long (our client sessions)
 BLOCK_TIMEOUT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
@@ -83,19 +110,34 @@ def particle_bytes(fields) -> int:
                                 for f in fields if f in SIM_FIELDS)
 
 
-def inside(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
-    """Indices of the particles x [n, 3] (m) inside any of the boxes (bounds included)."""
+def inside_mask(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
+    """[n] bool: whether each particle x [n, 3] (m) is inside any of the boxes (bounds
+    included). Axis by axis on columns: 5x faster than comparing [n, 3] rows."""
     keep = np.zeros(x.shape[0], dtype=bool)
     for r in regions:
-        keep |= np.all((x >= r.lo_m) & (x <= r.hi_m), axis=1)
-    return np.flatnonzero(keep)
+        box = np.ones(x.shape[0], dtype=bool)
+        for axis in range(3):
+            c = x[:, axis]
+            box &= (c >= r.lo_m[axis]) & (c <= r.hi_m[axis])
+        keep |= box
+    return keep
+
+
+def inside(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
+    """Indices of the particles x [n, 3] (m) inside any of the boxes (bounds included)."""
+    return np.flatnonzero(inside_mask(x, regions))
 
 
 def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
     """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
     field the simulation knows (unknown names are skipped; the caller reports them), of
-    the m particles inside the request's regions, or of all n when it has none."""
-    idx = None if request.regions is None else inside(ps.x, request.regions)
+    the m particles inside the request's regions (all n when it has none) whose original
+    id is a multiple of the request's `decimate`."""
+    keep = None if request.regions is None else inside_mask(ps.x, request.regions)
+    if request.decimate > 1:
+        every = ps.pid % request.decimate == 0
+        keep = every if keep is None else keep & every
+    idx = None if keep is None else np.flatnonzero(keep)
 
     def take(a: np.ndarray) -> np.ndarray:
         return a if idx is None else a[idx]
@@ -117,6 +159,53 @@ def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
     return out
 
 
+# SPEED_EDGES_M_S with -inf and +inf around: bin i holds speeds in [_BIN_BOUNDS[i], _BIN_BOUNDS[i + 1])
+_BIN_BOUNDS = np.concatenate([[-np.inf], np.asarray(SPEED_EDGES_M_S), [np.inf]])
+
+
+def speed_bins(speed_m_s: np.ndarray) -> np.ndarray:
+    """[n] intp: the Stats histogram bin of each speed [n] (m/s, finite, >= 0); equal to
+    np.searchsorted(SPEED_EDGES_M_S, speed, side="right") (tested), at a third of its cost:
+    the edges are 10 per decade from 1e-4 m/s, so log10 gives the bin to within one, and
+    one comparison with each neighbouring edge makes it exact."""
+    with np.errstate(divide="ignore"):  # speed 0: log10 = -inf, bin 0
+        k = np.floor(10.0 * np.log10(speed_m_s))
+    k = np.clip(k + (1.0 - 10.0 * math.log10(SPEED_EDGES_M_S[0])), 0.0, SPEED_BINS - 1.0)
+    k = k.astype(np.intp)
+    k -= speed_m_s < _BIN_BOUNDS[k]
+    k += speed_m_s >= _BIN_BOUNDS[k + 1]
+    return k
+
+
+def flow_stats(run: str, rank: int, step: int, time_s: float, ps: ParticleState,
+               regions: tuple[Region, ...] | None) -> Stats:
+    """The Stats of a rank's particles at one step (time_s in s). `regions`: the spec's
+    `active_regions(time_s)`; None: every particle counts as inside (an open window needs
+    them all), (): none does (no window open, or no spec yet; windows_open is then False).
+    Vectorized: a few passes over [n] and [n, 3] arrays (about 0.3 ms at 13k particles)."""
+    v = ps.v
+    d = ps.x - ps.x0
+    speed_sq = np.einsum("ij,ij->i", v, v)  # [n] m^2/s^2
+    speed = np.sqrt(speed_sq)  # [n] m/s
+    n = speed.shape[0]
+    bins = speed_bins(speed)
+    every = np.bincount(bins, minlength=SPEED_BINS)
+    if regions is None:
+        hist_in, hist_out = every, np.zeros_like(every)
+    elif not regions:
+        hist_in, hist_out = np.zeros_like(every), every
+    else:
+        hist_in = np.bincount(bins[inside_mask(ps.x, regions)], minlength=SPEED_BINS)
+        hist_out = every - hist_in
+    return Stats(run, rank, step, float(time_s), n,
+                 speed_sq_sum_m2_s2=float(speed_sq.sum()),
+                 max_speed_m_s=float(speed.max()) if n else 0.0,
+                 max_displacement_m=(math.sqrt(float(np.einsum("ij,ij->i", d, d).max()))
+                                     if n else 0.0),
+                 windows_open=regions != (), hist_in_regions=hist_in.tolist(),
+                 hist_elsewhere=hist_out.tolist())
+
+
 def record_path(path: Path, rank: int) -> Path:
     """A rank's MCAP record: `path` for rank 0, `{stem}.rank{r}{suffix}` for rank r > 0."""
     path = Path(path)
@@ -132,6 +221,13 @@ class PublishOptions:
     drain_timeout_s: float = DRAIN_TIMEOUT_S
     outbox_chunks: int = OUTBOX_CHUNKS
     outbox_bytes: int = OUTBOX_BYTES
+    outbox_stats: int = OUTBOX_STATS
+    stats_every_s: float = STATS_EVERY_S  # s of simulated time between Stats; 0: none
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.stats_every_s) and self.stats_every_s >= 0.0):
+            raise ValueError(f"stats_every_s must be a finite number of seconds >= 0 (0: no "
+                             f"stats), got {self.stats_every_s}")
 
 
 @dataclass
@@ -153,6 +249,11 @@ class PublishStats:
     particles_total: int = 0  # particles on the rank at the scheduled steps (before culling)
     prepare_s: float = 0.0  # simulation-thread time culling, encoding, queueing, s
     missing_fields: list[str] = field(default_factory=list)  # requested, not known here
+    # Stats messages (not part of the chunk counts above, nor of `dropped`)
+    stats_due: int = 0  # steps the stats cadence picked
+    stats_sent: int = 0  # handed to zenoh
+    stats_dropped: int = 0  # due but not put: no server, outbox full, stalled, refused, exit
+    stats_s: float = 0.0  # simulation-thread time computing, encoding, queueing Stats, s
 
     @property
     def dropped(self) -> int:
@@ -160,50 +261,66 @@ class PublishStats:
                 + self.dropped_stalled + self.failed)
 
 
+CHUNK, STATS, CONTROL = "chunk", "stats", "control"  # kinds of outbox items
+
+
 @dataclass
 class _Item:
     key: str
     payload: bytearray
-    chunk: bool
+    kind: str  # CHUNK, STATS or CONTROL (spec, events)
     particles: int = 0
     publish: bool = True  # False: only recorded (the spec the rank follows)
 
 
 class Outbox:
     """A bounded FIFO between the simulation thread and the sender: at most `max_chunks`
-    chunks and `max_bytes` of chunk payload (but always the newest chunk); a full outbox
-    drops its oldest chunk (the newest data is what a viewer wants). Control messages
-    (spec, events) are few and small and always enter."""
+    chunks and `max_bytes` of chunk payload (but always the newest chunk), and at most
+    `max_stats` Stats messages; a full outbox drops its oldest item of the kind that
+    overflows (the newest data is what a viewer wants). Control messages (spec, events)
+    are few and small and always enter."""
 
-    def __init__(self, max_chunks: int, max_bytes: int):
-        self.max_chunks, self.max_bytes = max_chunks, max_bytes
+    def __init__(self, max_chunks: int, max_bytes: int, max_stats: int = OUTBOX_STATS):
+        self.max_chunks, self.max_bytes, self.max_stats = max_chunks, max_bytes, max_stats
         self._items: collections.deque[_Item] = collections.deque()
         self._cond = threading.Condition()
         self._chunks = 0
         self._bytes = 0
+        self._stats = 0
         self.busy = False  # the sender holds an item
 
     def put(self, item: _Item) -> int:
-        """Enqueue; returns how many chunks were dropped to make room."""
+        """Enqueue; returns how many items of its kind were dropped to make room."""
         dropped = 0
         with self._cond:
-            if item.chunk:
+            if item.kind == CHUNK:
                 while self._chunks and (self._chunks >= self.max_chunks
                                         or self._bytes + len(item.payload) > self.max_bytes):
-                    self._drop_oldest_chunk()
+                    self._drop_oldest(CHUNK)
                     dropped += 1
                 self._chunks += 1
                 self._bytes += len(item.payload)
+            elif item.kind == STATS:
+                while self._stats and self._stats >= self.max_stats:
+                    self._drop_oldest(STATS)
+                    dropped += 1
+                self._stats += 1
             self._items.append(item)
             self._cond.notify()
         return dropped
 
-    def _drop_oldest_chunk(self) -> None:
+    def _count(self, item: _Item, sign: int) -> None:
+        if item.kind == CHUNK:
+            self._chunks += sign
+            self._bytes += sign * len(item.payload)
+        elif item.kind == STATS:
+            self._stats += sign
+
+    def _drop_oldest(self, kind: str) -> None:
         for i, old in enumerate(self._items):
-            if old.chunk:
+            if old.kind == kind:
                 del self._items[i]
-                self._chunks -= 1
-                self._bytes -= len(old.payload)
+                self._count(old, -1)
                 return
 
     def take(self, timeout: float) -> _Item | None:
@@ -213,9 +330,7 @@ class Outbox:
             if not self._items:
                 return None
             item = self._items.popleft()
-            if item.chunk:
-                self._chunks -= 1
-                self._bytes -= len(item.payload)
+            self._count(item, -1)
             self.busy = True
             return item
 
@@ -234,11 +349,12 @@ class Outbox:
                 self._cond.wait(left)
             return True
 
-    def discard_chunks(self) -> int:
+    def discard_chunks(self) -> tuple[int, int]:
+        """Drop every queued chunk and Stats message; returns how many of each."""
         with self._cond:
-            n = self._chunks
-            self._items = collections.deque(i for i in self._items if not i.chunk)
-            self._chunks = self._bytes = 0
+            n = (self._chunks, self._stats)
+            self._items = collections.deque(i for i in self._items if i.kind == CONTROL)
+            self._chunks = self._bytes = self._stats = 0
             return n
 
 
@@ -262,7 +378,10 @@ class RankPublisher:
         self.run: str | None = None
         self.stats = PublishStats()
         self.no_server_reason = ""
-        self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes)
+        self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
+        self._stats_cadence = (Window(every_s=options.stats_every_s)
+                               if options.stats_every_s > 0 else None)
+        self._prev: tuple[int, float] | None = None  # (step, time_s) of the last publish call
         self._token = None
         self._spec_sub = None
         self._writer = None
@@ -324,7 +443,7 @@ class RankPublisher:
             self._token = self.session.liveliness().declare_token(keys.rank_token(run, self.rank))
             self._spec_sub = self.session.declare_subscriber(keys.spec(run), self._on_spec)
         if spec is not None:  # the server serves the spec; the record notes which one we follow
-            self._outbox.put(_Item(keys.spec(run), spec.encode(), chunk=False, publish=False))
+            self._outbox.put(_Item(keys.spec(run), spec.encode(), CONTROL, publish=False))
         self._thread = threading.Thread(target=self._send_loop, name=f"minority-send-{self.rank}",
                                         daemon=True)
         self._thread.start()
@@ -336,19 +455,30 @@ class RankPublisher:
             return
         if spec.run == self.run and spec != self.spec:
             self.spec = spec
-            self._outbox.put(_Item(keys.spec(self.run), spec.encode(), chunk=False,
+            self._outbox.put(_Item(keys.spec(self.run), spec.encode(), CONTROL,
                                    publish=False))
 
     # --- per step -------------------------------------------------------------------------
-    def request(self, step: int, time_s: float) -> DataRequest | None:
+    def request(self, step: int, time_s: float,
+                prev_time_s: float | None = None) -> DataRequest | None:
         spec = self.spec
-        return None if spec is None else spec.request(step, time_s)
+        return None if spec is None else spec.request(step, time_s, prev_time_s)
 
     def publish(self, step: int, time_s: float, ps: ParticleState) -> bool:
-        """If the spec schedules this step, cull, encode and queue this rank's chunk (an
-        empty one when no particle is in the regions, so the server's step completes).
-        Returns whether the step was scheduled."""
-        request = self.request(step, time_s)
+        """Call at every sim step (step 0 included), with the simulated time (s) the
+        simulation reports after it. If the spec schedules this step, cull, encode and queue
+        this rank's chunk (an empty one when no particle is in the regions, so the server's
+        step completes); if the stats cadence picks it, queue a Stats message. Returns
+        whether a chunk was scheduled.
+
+        The previous call's time is this step's `prev_time_s` (None at step 0, or when the
+        previous call was not for step - 1): `every_s` cadences need it, and the chunk
+        carries it so the server decides with the very same floats."""
+        prev = self._prev[1] if self._prev is not None and self._prev[0] == step - 1 else None
+        self._prev = (step, time_s)
+        if self._stats_cadence is not None and self._stats_cadence.wants(step, time_s, prev):
+            self._publish_stats(step, time_s, ps)
+        request = self.request(step, time_s, prev)
         if request is None:
             return False
         t0 = time.perf_counter()
@@ -366,19 +496,36 @@ class RankPublisher:
                       f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
         fields = cull(ps, request)
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
-                      self.bounds_m, fields)
-        item = _Item(keys.chunk(self.run, step, self.rank), chunk.encode(), True, chunk.count)
+                      self.bounds_m, fields, prev_time_s=prev)
+        item = _Item(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)
         dropped = self._outbox.put(item)
         with self._lock:
             self.stats.dropped_outbox += dropped
             self.stats.prepare_s += time.perf_counter() - t0
         return True
 
+    def _publish_stats(self, step: int, time_s: float, ps: ParticleState) -> None:
+        """Compute, encode and queue this rank's Stats (the spec's open regions at time_s;
+        none while the spec is not known)."""
+        t0 = time.perf_counter()
+        with self._lock:
+            self.stats.stats_due += 1
+            if self.session is None and self._writer is None:  # nowhere to go: not built
+                self.stats.stats_dropped += 1
+                return
+        spec = self.spec
+        regions = () if spec is None else spec.active_regions(time_s)
+        message = flow_stats(self.run, self.rank, step, time_s, ps, regions)
+        dropped = self._outbox.put(_Item(keys.stats(self.run), message.encode(), STATS))
+        with self._lock:
+            self.stats.stats_dropped += dropped
+            self.stats.stats_s += time.perf_counter() - t0
+
     def event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
         if self.run is None:
             return
         ev = Event(self.run, kind, self.rank, message[:4000], detail or {})
-        self._outbox.put(_Item(keys.event(self.run), ev.encode(), chunk=False))
+        self._outbox.put(_Item(keys.event(self.run), ev.encode(), CONTROL))
 
     # --- the sender thread ------------------------------------------------------------------
     def _send_loop(self) -> None:
@@ -393,7 +540,7 @@ class RankPublisher:
                 with self._lock:
                     if self._writer is not None:
                         self.stats.recorded += 1
-                    if item.chunk:
+                    if item.kind == CHUNK:
                         if outcome == "sent":
                             self.stats.sent += 1
                             self.stats.bytes_sent += len(item.payload)
@@ -401,6 +548,11 @@ class RankPublisher:
                         else:
                             name = f"dropped_{outcome}" if outcome != "failed" else "failed"
                             setattr(self.stats, name, getattr(self.stats, name) + 1)
+                    elif item.kind == STATS:
+                        if outcome == "sent":
+                            self.stats.stats_sent += 1
+                        else:
+                            self.stats.stats_dropped += 1
             finally:
                 self._outbox.done()
 
@@ -446,8 +598,10 @@ class RankPublisher:
         (and `detail`), close the record and the session. Returns the final counts."""
         delivered = self._thread is None or self._outbox.wait_empty(self.options.drain_timeout_s)
         if not delivered:
+            chunks, stats = self._outbox.discard_chunks()
             with self._lock:
-                self.stats.dropped_at_exit += self._outbox.discard_chunks()
+                self.stats.dropped_at_exit += chunks
+                self.stats.stats_dropped += stats
         if self._thread is not None:
             self.event(EventKind.RANK_DONE, f"rank {self.rank} done",
                        {**(detail or {}), **self.summary()})
@@ -472,4 +626,5 @@ class RankPublisher:
             d = asdict(self.stats)
         d["dropped"] = self.stats.dropped
         d["prepare_s"] = round(d["prepare_s"], 6)
+        d["stats_s"] = round(d["stats_s"], 6)
         return d

@@ -3,9 +3,11 @@ publishing to the render server, lifecycle events. What `minority sim` calls.
 
 Order on every rank: load the scene, build its slab (`sim.decomp.SlabSimulator`), open its
 zenoh session and fetch the spec (ranks check that they follow the same spec; rank 0's wins
-otherwise), `run_start` (rank 0), then per step: MPM step, publish if scheduled; per output
-frame: rank 0 gathers and writes. At the end each rank drains its outbox and publishes
-`rank_done` with its counts; rank 0 gathers the totals. An error on one rank that the others
+otherwise), `run_start` (rank 0), then per step: MPM step, then `RankPublisher.publish` at
+every step, step 0 included (a chunk if the spec schedules the step, a Stats message on the
+stats cadence; it keeps the previous step's time for `every_s` cadences); per output frame:
+rank 0 gathers and writes. At the end each rank drains its outbox and publishes `rank_done`
+with its counts; rank 0 gathers the totals. An error on one rank that the others
 cannot see (e.g. a failed write) is published as an `error` event, then MPI_Abort ends the
 run; a non-finite value or an unstable time step is seen by every rank at the same step.
 """
@@ -150,6 +152,7 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
             "spec_version": spec.version if spec else None,
             "fields": list(spec.fields) if spec else [],
             "regions": [r.name for r in spec.regions] if spec else [],
+            "stats_every_s": config.publish.stats_every_s,
             "rebalance_every": config.rebalance_every, "threads": numba.get_num_threads()})
 
     writer = None
@@ -225,7 +228,9 @@ def _start_publishing(config, scene, sim, comm, log):
 
 
 def _step_loop(sim, config, frames, writer, publisher, say) -> int:
-    """Step through the output frames; publish at scheduled steps. Returns frames written."""
+    """Step through the output frames; hand every step (0 included, in order) to the
+    publisher, which needs each step's time as the next one's prev_time_s. Returns frames
+    written."""
     n_total = sim.n_total
     if publisher is not None:
         publisher.publish(sim.step_count, sim.time_s, sim.particles)
@@ -289,7 +294,7 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         for part in parts:
             for key, value in part.items():
                 if isinstance(value, (int, float)) and not isinstance(value, bool):
-                    if key == "prepare_s":  # the slowest rank's share is what costs time
+                    if key in ("prepare_s", "stats_s"):  # the slowest rank's share costs time
                         pub_total[key] = max(pub_total.get(key, 0.0), value)
                     else:
                         pub_total[key] = pub_total.get(key, 0) + value
@@ -310,5 +315,7 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         say(f"published: {pub_total['sent']} of {pub_total['scheduled']} scheduled chunks sent, "
             f"{pub_total['dropped']} dropped, {pub_total['bytes_sent'] / 1e6:.3g} MB, "
             f"{pub_total['particles_sent']} of {pub_total['particles_total']} particles"
+            + (f", {pub_total['stats_sent']} of {pub_total['stats_due']} stats sent"
+               if pub_total["stats_due"] else "")
             + (f", {pub_total['recorded']} messages recorded" if pub_total["recorded"] else ""))
     return summary

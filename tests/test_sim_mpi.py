@@ -6,6 +6,7 @@ the user as `mpiexec -n 2 minority sim`, 3 ranks through `--ranks 3` (which re-r
 command under the venv's mpiexec). One numba thread per rank (CI has 2 cores).
 """
 
+import json
 import os
 import re
 import subprocess
@@ -15,9 +16,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from conftest import free_port
 
+from protocol.log import read_log
+from protocol.messages import speed_histogram
+from protocol.view import Window
 from sim.decomp import DEFAULT_REBALANCE_EVERY, balanced_starts
+from sim.driver import Simulator
+from sim.publish import STATS_EVERY_S
 from sim.runner import run_scene
+from sim.scene import load_scene
 
 TIMEOUT_S = 180
 # A sand block thrown along x at 3 m/s while it collapses: in 0.03 s it crosses several
@@ -142,3 +150,50 @@ def test_rank_count_must_match_the_launcher(slide, tmp_path):
                           capture_output=True, text=True, timeout=TIMEOUT_S)
     assert proc.returncode != 0
     assert "--ranks 3, but the launcher started 2 processes" in proc.stderr
+
+
+@pytest.mark.slow
+def test_every_rank_publishes_its_stats(tmp_path):
+    """2 ranks with a spec file and a record, no server: each rank records its own Stats at
+    the default cadence (5 ms of simulated time, step 0 included); at each of those steps the
+    ranks' counts and in-region histograms add up to the single-process particles."""
+    scene = tmp_path / "slide.toml"
+    scene.write_text(SLIDE_TOML)
+    run_id, steps = "slide-stats", 120
+    spec = {"version": 2, "run": run_id,
+            "regions": [{"name": "front", "lo_m": [0.1, -1.0, -1.0], "hi_m": [1.0, 1.0, 1.0]}],
+            "views": [{"name": "side", "camera": {"position": [0.2, -1.0, 0.08],
+                                                  "focal_point": [0.2, 0.02, 0.08]},
+                       "schedule": [{"every_steps": 50, "regions": ["front"]}]}]}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    run([mpiexec, "-n", "2", sys.executable, "-m", "minority", "sim", str(scene),
+         "--out", str(tmp_path / "slide.h5"), "--threads", "1", "--rebalance-every", "10",
+         "--steps", str(steps), "-q", "--run", run_id, "--spec", str(tmp_path / "spec.json"),
+         "--record", str(tmp_path / "sim.mcap"), "--connect", f"tcp/127.0.0.1:{free_port()}"])
+    by_rank = {rank: [r.decode() for r in read_log(tmp_path / name, [f"minority/{run_id}/stats"])]
+               for rank, name in ((0, "sim.mcap"), (1, "sim.rank1.mcap"))}
+    sim = Simulator(load_scene(scene))  # the single-process run, step by step, frame by frame
+    cadence, prev, expected = Window(every_s=STATS_EVERY_S), None, {}
+    for k in range(steps + 1):
+        if k:
+            sim.advance_to(next(f for f in (0.01, 0.02, 0.03) if not sim.reached(f)), 1)
+        if cadence.wants(k, sim.time_s, prev):
+            ps = sim.particles
+            expected[k] = (sim.time_s, ps.x.copy(), ps.x0.copy(), np.linalg.norm(ps.v, axis=1))
+        prev = sim.time_s
+    assert next(iter(expected)) == 0 and len(expected) == 3  # t = 0, 5 ms, 10 ms (a frame)
+    for rank, messages in by_rank.items():
+        assert [m.step for m in messages] == list(expected)
+        assert all(m.rank == rank and m.windows_open and m.count > 0 for m in messages)
+    for i, (t, x, x0, speed) in enumerate(expected.values()):
+        parts = [by_rank[0][i], by_rank[1][i]]
+        assert all(m.time_s == t for m in parts)
+        front = x[:, 0] >= 0.1
+        assert sum(m.count for m in parts) == x.shape[0] == 3200
+        hist_in = np.sum([m.hist_in_regions for m in parts], axis=0).tolist()
+        hist_out = np.sum([m.hist_elsewhere for m in parts], axis=0).tolist()
+        assert hist_in == speed_histogram(speed[front])
+        assert hist_out == speed_histogram(speed[~front])
+        assert max(m.max_displacement_m for m in parts) == pytest.approx(
+            np.linalg.norm(x - x0, axis=1).max(), rel=1e-12, abs=1e-300)

@@ -1,10 +1,14 @@
 """What a rank publishes: only the particles inside the spec's regions, only the requested
-fields, at the scheduled steps; the render server renders the culled chunks; without a
-server, or with a subscriber that never reads, the run finishes with every drop counted.
+fields, every `decimate`-th particle by id, at the scheduled steps (`every_s` cadences from
+the previous step's time, which the chunk carries); Stats on their own cadence; the render
+server renders the culled chunks; without a server, or with a subscriber that never reads,
+the run finishes with every drop counted.
 Network tests: loopback, a free port each, waits on counts with timeouts."""
 
+import dataclasses
 import io
 import json
+import math
 import threading
 from pathlib import Path
 
@@ -14,21 +18,37 @@ import zenoh
 from conftest import free_port
 from test_loopback import wait_until
 
-from protocol import Chunk, Event, EventKind, Spec, decode_as, keys
+from protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
 from protocol.log import read_log
+from protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, speed_histogram
 from protocol.session import Inbox, NetworkOptions, Role, open_session
 from protocol.spec import DataRequest, Region
+from protocol.view import Window
 from protocol.wire import decode
 from render_server.daemon import RenderServer, ServerOptions
 from sim.driver import Simulator
-from sim.publish import SIM_FIELDS, PublishOptions, cull, particle_bytes, record_path
+from sim.publish import (
+    CONTROL,
+    SIM_FIELDS,
+    STATS,
+    Outbox,
+    PublishOptions,
+    _Item,
+    cull,
+    flow_stats,
+    particle_bytes,
+    record_path,
+    speed_bins,
+)
 from sim.ranks import RankRunConfig, run_ranks
 from sim.scene import builtin_scene_path, load_scene
-from sim.state import seed_particles
+from sim.state import PARTICLE_FIELDS, seed_particles
 
 RUN = "test-run"
 TINY = builtin_scene_path("tiny")  # 0.1 m column at x in [0, 0.1] m
 FRONT = {"name": "front", "lo_m": [0.05, -1.0, -1.0], "hi_m": [1.0, 1.0, 1.0]}
+FRONT_BOX = Region("front", (0.05, -1.0, -1.0), (1.0, 1.0, 1.0))
+CAMERA = {"position": [0.2, -1.0, 0.08], "focal_point": [0.2, 0.02, 0.08]}
 
 
 def spec_dict(every_steps: int = 20, regions: bool = True, field: str = "displacement") -> dict:
@@ -175,6 +195,7 @@ def test_without_a_server_the_run_goes_on_and_counts_every_drop(tmp_path):
     topics = [r.topic for r in read_log(tmp_path / "sim.mcap")]
     assert topics.count(f"minority/{RUN}/chunk") == 11 and topics[0] == f"minority/{RUN}/spec"
     assert topics.count(f"minority/{RUN}/event") == 2  # run start, rank done
+    assert topics.count(f"minority/{RUN}/stats") == p["stats_due"] == p["stats_dropped"] > 0
 
 
 SIM_SIDE_CONFIG = """{
@@ -261,3 +282,226 @@ def test_an_error_mid_run_is_published_as_an_event(tmp_path, monkeypatch):
     assert [e.kind for e in events] == [EventKind.RUN_START, EventKind.ERROR, EventKind.RANK_DONE]
     assert "NonFiniteError: non-finite velocity at step 5" in events[1].message
     assert events[2].detail["scheduled"] == 6  # steps 0-5 were scheduled (all recorded)
+
+
+# --- decimation, Stats, every_s cadences (spec version 2) ------------------------------------
+
+def in_box(x: np.ndarray, r: Region) -> np.ndarray:
+    """[n] bool, by hand: x [n, 3] inside the box (bounds included)."""
+    lo, hi = np.array(r.lo_m), np.array(r.hi_m)
+    return ((x >= lo) & (x <= hi)).all(axis=1)
+
+
+def shuffled_particles():
+    """moved_particles in a shuffled storage order: slot k no longer holds particle id k."""
+    ps = moved_particles()
+    ps.permute(np.random.default_rng(1).permutation(ps.n))
+    assert not np.array_equal(ps.pid, np.arange(ps.n))
+    return ps
+
+
+def view(name: str, decimate: int, *windows: dict) -> dict:
+    return {"name": name, "camera": CAMERA, "width": 64, "height": 48, "field": "displacement",
+            "range": [0.0, 0.1], "decimate": decimate, "schedule": list(windows)}
+
+
+def test_cull_keeps_every_nth_particle_by_original_id_after_the_region_test():
+    ps = shuffled_particles()
+    for regions in ((FRONT_BOX,), None):
+        fields = cull(ps, DataRequest(("side",), ("id", "velocity"), regions, decimate=3))
+        keep = ps.pid % 3 == 0
+        if regions is not None:
+            keep &= in_box(ps.x, FRONT_BOX)
+        assert 0 < keep.sum() < ps.n
+        assert np.array_equal(fields["id"], ps.pid[keep])
+        assert np.array_equal(fields["positions"], ps.x[keep].astype(np.float32))
+        assert np.array_equal(fields["velocity"], ps.v[keep].astype(np.float32))
+    plain = cull(ps, DataRequest(("side",), ("displacement",), None, decimate=3))
+    assert set(plain) == {"positions", "displacement"}
+    assert plain["positions"].shape[0] == np.count_nonzero(ps.pid % 3 == 0)
+
+
+def test_views_that_decimate_differently_get_the_common_stride_with_ids():
+    ps = shuffled_particles()
+    spec = Spec.from_dict({"version": 2, "run": RUN, "views": [
+        view("a", 2, {"every_steps": 1}), view("b", 4, {"every_steps": 2})]})
+    both = spec.request(2, 0.001, 0.0005)
+    assert both.decimate == 2 and "id" in both.fields
+    fields = cull(ps, both)
+    ids = fields["id"]
+    assert np.array_equal(np.sort(ids), np.arange(0, ps.n, 2))  # every even id, once
+    b = fields["positions"][ids % 4 == 0]  # what the server keeps for view b
+    assert np.array_equal(sorted_rows(b), sorted_rows(ps.x[ps.pid % 4 == 0].astype(np.float32)))
+    alone = spec.request(1, 0.0005, 0.0)  # view a only: its stride, no ids needed
+    assert alone.decimate == 2 and "id" not in alone.fields and "id" not in cull(ps, alone)
+
+
+def test_speed_bins_equal_a_search_of_the_edges():
+    edges = np.asarray(SPEED_EDGES_M_S)
+    rng = np.random.default_rng(2)
+    speeds = np.concatenate([edges, np.nextafter(edges, 0.0), np.nextafter(edges, np.inf),
+                             [0.0, 5e-324, 1e-300, 1e300], 10.0 ** rng.uniform(-8.0, 3.0, 20_000)])
+    bins = speed_bins(speeds)
+    assert np.array_equal(bins, np.searchsorted(edges, speeds, side="right"))
+    assert np.bincount(bins, minlength=SPEED_BINS).tolist() == speed_histogram(speeds)
+
+
+def test_flow_stats_match_a_hand_computation():
+    ps = shuffled_particles()
+    speed = np.linalg.norm(ps.v, axis=1)
+    front = in_box(ps.x, FRONT_BOX)
+    assert 0 < front.sum() < ps.n
+    everyone, no_one = np.ones(ps.n, bool), np.zeros(ps.n, bool)
+    for regions, inside in (((FRONT_BOX,), front), (None, everyone), ((), no_one)):
+        st = flow_stats(RUN, 1, 7, 0.0125, ps, regions)
+        assert (st.rank, st.step, st.time_s, st.count) == (1, 7, 0.0125, ps.n)
+        assert st.windows_open == (regions != ())
+        assert st.hist_in_regions == speed_histogram(speed[inside])
+        assert st.hist_elsewhere == speed_histogram(speed[~inside])
+        assert st.max_speed_m_s == pytest.approx(speed.max(), rel=1e-12)
+        assert st.speed_sq_sum_m2_s2 == pytest.approx((speed ** 2).sum(), rel=1e-12)
+        assert st.max_displacement_m == pytest.approx(
+            np.linalg.norm(ps.x - ps.x0, axis=1).max(), rel=1e-12)
+        again = decode_as(st.encode(), Stats)  # decoding checks that the histograms add up
+        assert again == dataclasses.replace(st, sent_ns=again.sent_ns)
+    empty = dataclasses.replace(ps, **{name: getattr(ps, name)[:0] for name in PARTICLE_FIELDS})
+    st = flow_stats(RUN, 0, 0, 0.0, empty, (FRONT_BOX,))
+    assert (st.count, st.max_speed_m_s, st.max_displacement_m) == (0, 0.0, 0.0)
+    assert st.hist_in_regions == st.hist_elsewhere == [0] * SPEED_BINS
+    decode_as(st.encode(), Stats)
+
+
+def test_the_outbox_bounds_stats_on_their_own():
+    box = Outbox(max_chunks=4, max_bytes=1 << 20, max_stats=2)
+    puts = [box.put(_Item(keys.stats(RUN), bytearray(b"s%d" % i), STATS)) for i in range(3)]
+    assert puts == [0, 0, 1]  # the oldest made room
+    assert box.put(_Item(keys.event(RUN), bytearray(b"e"), CONTROL)) == 0
+    taken = []
+    for _ in range(3):
+        taken.append(bytes(box.take(1.0).payload))
+        box.done()
+    assert taken == [b"s1", b"s2", b"e"] and box.discard_chunks() == (0, 0)
+
+
+@dataclasses.dataclass
+class Snapshot:
+    time_s: float
+    x: np.ndarray  # [n, 3] float64, m
+    x0: np.ndarray
+    v: np.ndarray  # [n, 3] float64, m/s
+    pid: np.ndarray  # [n] int64
+
+
+def reference_run(steps: int) -> list[Snapshot]:
+    """Steps 0..steps of the single-process run as a rank steps it (towards the first output
+    frame, 0.02 s): the time the simulation reports and the particles after each step."""
+    sim = Simulator(load_scene(TINY))
+
+    def snap() -> Snapshot:
+        ps = sim.particles
+        return Snapshot(sim.time_s, ps.x.copy(), ps.x0.copy(), ps.v.copy(), ps.pid.copy())
+
+    out = [snap()]
+    while sim.step_count < steps:
+        sim.advance_to(0.02, max_steps=1)
+        out.append(snap())
+    return out
+
+
+def schedule_spec() -> Spec:
+    """`side` (every 2nd particle): the front region every 1 ms up to 4 ms, every particle
+    every 1.5 ms from 6 ms; `top` (every 4th particle) every 3 ms from 6 ms, so both views
+    are due at the first step at or after 6 ms (and their strides differ: ids are sent)."""
+    return Spec.from_dict({"version": 2, "run": RUN, "regions": [FRONT], "views": [
+        view("side", 2, {"t_end_s": 0.004, "every_s": 0.001, "regions": ["front"]},
+             {"t_start_s": 0.006, "every_s": 0.0015}),
+        view("top", 4, {"t_start_s": 0.006, "every_s": 0.003})]})
+
+
+def test_every_s_cadences_and_stats_follow_the_steps_times(server, client_factory, endpoint,
+                                                           tmp_path):
+    """The chunks' steps are exactly those an every_s window wants given the simulated
+    times, with prev_time_s the previous step's time (the server decides from it); the
+    chunks hold every request's stride and ids; Stats come every 2 ms of simulated time with
+    the in/out split of the windows open then (front region, none, every particle)."""
+    steps, stats_every_s = 60, 0.002
+    spec = schedule_spec()
+    ref = reference_run(steps)
+    times = [r.time_s for r in ref]
+    prev = [None, *times[:-1]]
+    due = [k for k in range(steps + 1)
+           if any(w.wants(k, times[k], prev[k]) for v in spec.views for w in v.schedule)]
+    stats_due = [k for k in range(steps + 1)
+                 if Window(every_s=stats_every_s).wants(k, times[k], prev[k])]
+    assert times[-1] > 0.012 and 8 <= len(due) < steps // 3 and len(stats_due) == 7
+    observer = client_factory()
+    chunks, stats = Inbox(observer, keys.chunks(RUN)), Inbox(observer, keys.stats(RUN))
+    queryable = server.declare_queryable(keys.spec(RUN), lambda q: q.reply(
+        keys.spec(RUN), bytes(spec.encode())))
+    try:
+        summary = run_ranks(config(endpoint, tmp_path, steps, stats_every_s=stats_every_s),
+                            stream=io.StringIO())
+    finally:
+        queryable.undeclare()
+    p = summary.publish
+    assert (p["scheduled"], p["sent"]) == (len(due), len(due))
+    assert (p["stats_due"], p["stats_sent"], p["stats_dropped"]) == (len(stats_due),) * 2 + (0,)
+    assert wait_until(lambda: chunks.received == len(due) and stats.received == len(stats_due))
+
+    got = sorted((decode_as(chunks.get(1).payload, Chunk) for _ in due), key=lambda c: c.step)
+    assert [c.step for c in got] == due
+    kinds = set()
+    for c in got:
+        r = ref[c.step]
+        assert c.time_s == times[c.step] and c.prev_time_s == prev[c.step]  # the very floats
+        request = spec.request(c.step, c.time_s, c.prev_time_s)
+        keep = r.pid % request.decimate == 0
+        if request.regions is not None:
+            keep &= in_box(r.x, FRONT_BOX)
+        assert np.array_equal(sorted_rows(c.positions), sorted_rows(r.x[keep].astype(np.float32)))
+        assert ("id" in c.fields) == (set(request.views) == {"side", "top"})
+        if "id" in c.fields:
+            assert np.array_equal(np.sort(c.fields["id"]), np.sort(r.pid[keep]))
+        kinds.add((request.regions is None, request.decimate, "id" in c.fields))
+    assert kinds == {(False, 2, False), (True, 2, False), (True, 2, True)}
+
+    got_stats = sorted((decode_as(stats.get(1).payload, Stats) for _ in stats_due),
+                       key=lambda m: m.step)
+    assert [m.step for m in got_stats] == stats_due
+    phases = set()
+    for m in got_stats:
+        r, t = ref[m.step], m.time_s
+        assert t == times[m.step] and m.rank == 0 and m.count == r.pid.size
+        # open then: side's front window up to 4 ms, nothing, then windows of every particle
+        inside = in_box(r.x, FRONT_BOX) if t <= 0.004 else np.full(r.pid.size, t >= 0.006)
+        assert m.windows_open == (t <= 0.004 or t >= 0.006)
+        speed = np.linalg.norm(r.v, axis=1)
+        assert m.hist_in_regions == speed_histogram(speed[inside])
+        assert m.hist_elsewhere == speed_histogram(speed[~inside])
+        assert sum(m.hist_in_regions) + sum(m.hist_elsewhere) == m.count
+        assert m.max_displacement_m == pytest.approx(
+            np.linalg.norm(r.x - r.x0, axis=1).max(), rel=1e-12, abs=1e-300)
+        assert m.max_speed_m_s == pytest.approx(speed.max(), rel=1e-12)
+        phases.add((t <= 0.004, t >= 0.006))
+    assert phases == {(True, False), (False, False), (False, True)}
+    assert got_stats[-1].max_displacement_m > 1e-4  # the column has moved
+
+
+def test_stats_are_published_before_any_spec_is_known(tmp_path):
+    """No server, no spec: nothing is scheduled, yet Stats (every 5 ms of simulated time,
+    step 0 included) are recorded, every particle elsewhere, no window open."""
+    cfg = config(f"tcp/127.0.0.1:{free_port()}", tmp_path, 30, record=tmp_path / "sim.mcap")
+    summary = run_ranks(cfg, stream=io.StringIO())
+    p = summary.publish
+    got = [r.decode() for r in read_log(tmp_path / "sim.mcap", [f"minority/{RUN}/stats"])]
+    assert p["scheduled"] == 0 and p["stats_due"] == p["stats_dropped"] == len(got) == 2
+    assert got[0].step == 0 and got[1].time_s >= 0.005 > got[1].time_s - 0.001
+    for m in got:
+        assert not m.windows_open and m.hist_in_regions == [0] * SPEED_BINS
+        assert sum(m.hist_elsewhere) == m.count == summary.particles
+
+
+def test_stats_every_s_must_be_a_time():
+    for bad in (-0.001, math.nan, math.inf):
+        with pytest.raises(ValueError, match="stats_every_s"):
+            PublishOptions(stats_every_s=bad)

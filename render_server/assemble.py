@@ -45,6 +45,7 @@ class AssembledStep:
     nbytes: int
     receive_s: float  # earliest send of the step's chunks to assembled, s (see _release)
     incomplete: bool
+    prev_time_s: float | None = None  # simulated time of the step before, s (None: unknown)
 
 
 @dataclass
@@ -105,6 +106,11 @@ class StepAssembler:
                 out.append(self._release(step, now_ns, incomplete=True))
         return out
 
+    def drain(self, now_ns: int) -> list[AssembledStep]:
+        """Release every pending step, oldest first (incomplete unless every rank sent)."""
+        return [self._release(s, now_ns, incomplete=not self._complete(p))
+                for s, p in sorted(self.pending.items())]
+
     def _complete(self, p: PendingStep) -> bool:
         return all(r in p.chunks or r in self.gone for r in range(p.ranks))
 
@@ -127,9 +133,11 @@ class StepAssembler:
         # receive time from the senders' stamps (one host, or synchronized clocks); from the
         # first arrival when a stamp is missing or lies in the future (clock skew)
         start_ns = p.first_sent_ns if 0 < p.first_sent_ns <= p.first_ns else p.first_ns
+        # every rank reports the same previous step time: rank 0's, else the first known
+        prev = next((c.prev_time_s for c in chunks if c.prev_time_s is not None), None)
         return AssembledStep(
             step=step, time_s=p.time_s,
             positions=join([c.positions for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
             nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
-            incomplete=incomplete or len(chunks) < p.ranks)
+            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev)

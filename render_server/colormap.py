@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
 from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
 
 from protocol.errors import SpecError
+from protocol.view import InlineColormap
 
 LUT_SIZE = 1024
 _SPACES = {"RGB": "SetColorSpaceToRGB", "HSV": "SetColorSpaceToHSV", "Lab": "SetColorSpaceToLab",
@@ -126,3 +127,14 @@ def preset(name: str) -> Colormap:
     if name not in presets:
         raise SpecError(f"colormap {name!r} is not a built-in preset; known: {sorted(presets)}")
     return presets[name]
+
+
+def view_colormap(colormap: str | InlineColormap) -> Colormap:
+    """The Colormap of a view: a built-in preset by ParaView name, or the view's inline
+    ParaView preset (built once per distinct preset, so its lookup table is sampled once)."""
+    return preset(colormap) if isinstance(colormap, str) else _inline(colormap)
+
+
+@lru_cache(maxsize=256)
+def _inline(colormap: InlineColormap) -> Colormap:
+    return from_paraview(colormap.to_dict(), f"colormap {colormap.name!r}")

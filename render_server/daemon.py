@@ -1,5 +1,6 @@
 """The render server daemon: serve the spec, receive chunks, assemble steps, render the
-scheduled views, write PNG frames, publish frames and timing, record everything.
+scheduled views (render_server.frames, shared with `minority replay`), write PNG frames,
+publish frames and timing, record everything.
 
 Threads: zenoh's callbacks only enqueue (bounded inbox); a receive thread decodes chunks and
 assembles steps; a render thread takes the newest assembled step (a step replaced before it
@@ -30,7 +31,8 @@ from render_server.assemble import (
     AssembledStep,
     StepAssembler,
 )
-from render_server.render import Canvas, encode_png, prepare, render
+from render_server.frames import render_views
+from render_server.render import Canvas, prepare, render
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
@@ -173,35 +175,25 @@ class RenderServer:
 
     def render_step(self, step: AssembledStep) -> None:
         """Render every view the schedule asks for at this step; publish frames and timing."""
-        views = self.spec.wants(step.step, step.time_s)
-        if not views or len(step.positions) == 0:
+        results = render_views(step, self.spec, self._canvases, self.options.shadows)
+        if not results:
             return
-        radius = self.spec.sphere_radius_m or 0.5 * step.spacing_m
-        t0 = time.perf_counter()
-        scene = prepare(step.positions, radius, grids=self.options.shadows)
-        setup_s = time.perf_counter() - t0
-        for view in views:
-            if view.field not in step.fields:
+        for r in results:
+            if r.error:
                 self.stats.view_errors += 1
-                self._error(f"view {view.name!r} needs field {view.field!r}; step {step.step} "
-                            f"has {sorted(step.fields)}")
+                self._error(r.error)
                 continue
-            canvas = self._canvases.get(view.name)
-            if canvas is None or canvas.size != (view.width, view.height):
-                canvas = self._canvases[view.name] = Canvas(view.width, view.height)
-            t1 = time.perf_counter()
-            image = render(scene, step.fields[view.field], view, self.options.shadows, canvas)
-            render_s = time.perf_counter() - t1  # image synthesis; PNG encoding is output
-            png = encode_png(image)
+            view = r.view
             if self.options.write_png:
                 path = self.options.out_dir / self.run / view.name / f"{step.step:06d}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_bytes(png)
-            frame = Frame(self.run, view.name, step.step, step.time_s, view.width, view.height, png)
+                path.write_bytes(r.png)
+            frame = Frame(self.run, view.name, step.step, step.time_s, view.width, view.height,
+                          r.png)
             put(self.session, keys.frame(self.run, view.name), frame.encode(), FRAME_QOS)
-            timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s, setup_s,
-                            render_s, step.nbytes, len(step.positions), step.ranks_expected,
-                            step.ranks_received, step.incomplete)
+            timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s,
+                            r.setup_s, r.render_s, step.nbytes, len(step.positions),
+                            step.ranks_expected, step.ranks_received, step.incomplete)
             put(self.session, keys.timing(self.run), timing.encode(), CONTROL_QOS)
             self.stats.frames += 1
         self.stats.steps_rendered += 1

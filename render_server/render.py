@@ -23,7 +23,7 @@ from render_server.accel import BrickGrids, build_grids
 from render_server.bricks import Bricks, as_positions, repartition
 from render_server.camera import basis, pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
 from render_server.cast import cast
-from render_server.colormap import preset
+from render_server.colormap import view_colormap
 from render_server.trace import trace
 
 AMBIENT = 0.3
@@ -166,7 +166,7 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
                   out=(canvas.hit_t, canvas.hit_id), out_clear=clear)
     light = key_light(view)
     shadowed = _shadow_mask(scene, view, t, ids, light) if shadows else canvas.unshadowed
-    cmap = preset(view.colormap)
+    cmap = view_colormap(view.colormap)
     out = canvas.rgb
     background = (np.clip(np.asarray(view.background), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     _shade(frame, view.width, view.height, t, ids, shadows, scene.positions, scene.radius,

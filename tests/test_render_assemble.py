@@ -71,3 +71,22 @@ def test_receive_time_counts_from_the_earliest_send():
     assert abs(done.receive_s - 0.006) < 1e-12  # 15 ms - 9 ms
     (skewed,) = a.add(chunk(40, 0, ranks=1, sent_ns=99 * MS), 20 * MS, 1)  # future stamp: skew
     assert skewed.receive_s == 0.0  # falls back to the arrival time
+
+
+def test_previous_step_time_is_carried():
+    a = StepAssembler()
+    first, second = chunk(20, 1, ranks=2), chunk(20, 0, ranks=2)
+    first.prev_time_s = 0.0019  # every rank reports the same; one of them may not know it
+    (done,) = a.add(first, 0, 1) + a.add(second, 0, 1)
+    assert done.prev_time_s == 0.0019
+    (done,) = a.add(chunk(40, 0, ranks=1), 0, 1)
+    assert done.prev_time_s is None
+
+
+def test_drain_releases_what_is_pending():
+    a = StepAssembler()
+    a.add(chunk(60, 0, ranks=2), 0, 1)
+    a.add(chunk(40, 0, ranks=2), 0, 1)
+    done = a.drain(0)
+    assert [d.step for d in done] == [40, 60] and all(d.incomplete for d in done)
+    assert a.pending == {}

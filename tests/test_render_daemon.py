@@ -2,6 +2,7 @@
 timing published and logged; malformed and degenerate input counted, never fatal; a rank
 killed mid-step releases the step as incomplete. Waits are on message counts."""
 
+import queue
 import threading
 
 import numpy as np
@@ -15,6 +16,25 @@ from protocol.session import LOSSLESS_QOS, Inbox, put
 from render_server.daemon import RenderServer, ServerOptions
 
 RUN = "test-run"
+
+
+class EveryStep:
+    """A mailbox for the daemon's render thread that keeps every step, in order (tests that
+    need every frame swap it in for the newest-wins `LatestStep`)."""
+
+    replaced = 0
+
+    def __init__(self):
+        self._queue = queue.Queue()
+
+    def put(self, step) -> None:
+        self._queue.put(step)
+
+    def take(self, timeout: float):
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
 
 
 def spec() -> Spec:
@@ -154,5 +174,26 @@ def test_newest_step_wins_when_rendering_falls_behind(server, client_factory, tm
         # the step the render thread held, then only the newest: 28 or 29 skipped
         assert s["steps_rendered"] in (1, 2) and s["inbox_dropped"] == 0
         assert daemon.stats.frames == s["steps_rendered"]
+    finally:
+        daemon.close()
+
+
+def test_every_s_schedule_uses_the_chunks_previous_step_time(server, client_factory, tmp_path):
+    timed = Spec.from_dict({**spec().to_dict(),
+                            "views": [{**spec().views[0].to_dict(),
+                                       "schedule": [{"every_s": 0.01}]}]})
+    daemon = RenderServer(server, ServerOptions(timed, tmp_path, None, timeout_s=30.0))
+    daemon._latest = EveryStep()  # no step may be skipped here
+    try:
+        sim = client_factory()
+        timing = Inbox(sim, keys.timing(RUN))
+        dt = 0.003
+        for step in range(1, 9):  # t = 0.003 .. 0.024 s: the instants 0.01 and 0.02 s
+            chunk = make_chunk(n=20, step=step, rank=0, ranks=1, run=RUN)
+            chunk.time_s, chunk.prev_time_s = step * dt, (step - 1) * dt
+            put(sim, keys.chunk(RUN, step, 0), chunk.encode(), LOSSLESS_QOS)
+        assert wait_until(lambda: timing.received == 2)
+        steps = sorted(decode_as(timing.get(1).payload, Timing).step for _ in range(2))
+        assert steps == [4, 7]  # 0.012 s from 0.009 s, 0.021 s from 0.018 s
     finally:
         daemon.close()

@@ -78,6 +78,10 @@ class LatestStep:
             self._step = step
             self._cond.notify()
 
+    def empty(self) -> bool:
+        with self._cond:
+            return self._step is None
+
     def take(self, timeout: float) -> AssembledStep | None:
         with self._cond:
             if self._step is None:
@@ -109,6 +113,11 @@ class RenderServer:
         self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
         self._stop = threading.Event()
         self._last_error_event = 0.0
+        # the run's end: every rank said done (event or token gone), then all drained
+        self.finished = threading.Event()
+        self._ranks_expected = 0  # from the chunks' rank count and the live tokens
+        self._ranks_gone: set[int] = set()
+        self._drained = threading.Event()  # nothing more to assemble; set after the last put
         warm_up()  # compile the kernels now, not on the first step
         self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
@@ -138,13 +147,20 @@ class RenderServer:
             self._rank_gone(event.rank)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
+        parsed = keys.parse(str(sample.key_expr))
+        if not (parsed and parsed.rest and parsed.rest[0].isdigit()):
+            return
+        rank = int(parsed.rest[0])
         if sample.kind == zenoh.SampleKind.DELETE:
-            parsed = keys.parse(str(sample.key_expr))
-            if parsed and parsed.rest and parsed.rest[0].isdigit():
-                self._rank_gone(int(parsed.rest[0]))
+            self._rank_gone(rank)
+        else:
+            with self._lock:
+                self._ranks_expected = max(self._ranks_expected, rank + 1)
 
     def _rank_gone(self, rank: int) -> None:
         with self._lock:
+            self._ranks_gone.add(rank)
+            self._ranks_expected = max(self._ranks_expected, rank + 1)
             for step in self._assembler.rank_gone(rank, time.time_ns()):
                 self._latest.put(step)
 
@@ -152,6 +168,7 @@ class RenderServer:
     def _receive_loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=RECEIVE_POLL_S)
+            drained = False
             with self._lock:
                 done = self._assembler.expire(time.time_ns())
                 if item is not None:
@@ -162,15 +179,24 @@ class RenderServer:
                         self._error(f"rejected chunk on {item.key}: {exc}")
                     else:
                         self.stats.chunks += 1
+                        self._ranks_expected = max(self._ranks_expected, chunk.ranks)
                         done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
+                elif (self._ranks_expected and not self._drained.is_set()
+                      and self._ranks_gone >= set(range(self._ranks_expected))):
+                    done += self._assembler.drain(time.time_ns())  # the run is over
+                    drained = True
             for step in done:
                 self._latest.put(step)
+            if drained:
+                self._drained.set()
 
     def _render_loop(self) -> None:
         while not self._stop.is_set():
             step = self._latest.take(timeout=RECEIVE_POLL_S)
             if step is not None:
                 self.render_step(step)
+            elif self._drained.is_set() and self._latest.empty():
+                self.finished.set()  # every rank is done and its last step rendered
         self.stats.steps_skipped = self._latest.replaced
 
     def render_step(self, step: AssembledStep) -> None:

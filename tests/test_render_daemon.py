@@ -197,3 +197,24 @@ def test_every_s_schedule_uses_the_chunks_previous_step_time(server, client_fact
         assert steps == [4, 7]  # 0.012 s from 0.009 s, 0.021 s from 0.018 s
     finally:
         daemon.close()
+
+
+def test_finished_after_every_rank_is_done_and_the_last_step_rendered(daemon, client_factory):
+    from protocol import Event, EventKind
+
+    sim = client_factory()
+    frames, timing = Inbox(sim, keys.frames(RUN)), Inbox(sim, keys.timing(RUN))
+    send_step(sim, 0)
+    assert wait_until(lambda: frames.received == 1)
+    send_step(sim, 20, ranks=2)
+    chunk = make_chunk(n=50, step=40, rank=0, ranks=2, seed=1, run=RUN)  # rank 1 never sends it
+    put(sim, keys.chunk(RUN, 40, 0), chunk.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: daemon.stats.chunks == 5)
+    assert not daemon.finished.is_set()
+    put(sim, keys.event(RUN), Event(RUN, EventKind.RANK_DONE, 0, "done").encode(), LOSSLESS_QOS)
+    assert not daemon.finished.wait(0.3)  # rank 1 is still running
+    put(sim, keys.event(RUN), Event(RUN, EventKind.RANK_DONE, 1, "done").encode(), LOSSLESS_QOS)
+    assert daemon.finished.wait(TIMEOUT_S)
+    assert wait_until(lambda: timing.received >= 2)
+    last = [decode_as(timing.get(1).payload, Timing) for _ in range(timing.received)][-1]
+    assert last.step == 40 and last.incomplete and last.ranks_received == 1

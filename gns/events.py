@@ -73,18 +73,25 @@ def _frames(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float
     return slice(k0, k1 + 1)
 
 
-def moving_extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float,
+def moving_points(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float,
                   speed_threshold_m_s: float) -> np.ndarray | None:
-    """[3, 2] bounds (m) of the particles that move faster than the threshold at any frame in
-    [t0, t1], over all their positions in the window; None when nothing moves."""
+    """[k, 3] every position (m) in [t0, t1] of the particles that move faster than the
+    threshold at any frame of it; None when nothing moves."""
     w = _frames(positions, frame_interval_s, t0, t1)
     first = max(w.start - 1, 0)  # a frame's speed needs the frame before it
     sp = speeds(positions[first:w.stop], frame_interval_s)[w.start - first:]
     moving = (sp > speed_threshold_m_s).any(axis=0)
     if not moving.any():
         return None
-    pts = positions[w, moving].reshape(-1, 3)
-    return np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
+    return positions[w, moving].reshape(-1, 3)
+
+
+def moving_extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float,
+                  speed_threshold_m_s: float) -> np.ndarray | None:
+    """[3, 2] bounds (m) of the particles that move faster than the threshold at any frame in
+    [t0, t1], over all their positions in the window; None when nothing moves."""
+    pts = moving_points(positions, frame_interval_s, t0, t1, speed_threshold_m_s)
+    return None if pts is None else np.stack([pts.min(axis=0), pts.max(axis=0)], axis=1)
 
 
 def extent(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> np.ndarray:

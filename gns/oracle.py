@@ -24,7 +24,7 @@ from gns.events import (
     displacement_range,
     events_from_series,
     fast_windows,
-    moving_extent,
+    moving_points,
     speeds,
 )
 from protocol.spec import SPEC_VERSION, Spec
@@ -44,6 +44,7 @@ class OracleOptions:
     margin: float = 0.1  # framing and colormap margin, fraction of the extent / range
     roi_pad_m: float = 0.02  # padding of each region of interest beyond the moving extent, m
     roi_front_pad: float = 0.25  # extra padding ahead of the flow front, fraction of the travel
+    roi_slabs: int = 4  # boxes per region of interest, slabs along the flow
     colormap: str = "Viridis (matplotlib)"
 
 
@@ -112,18 +113,27 @@ class Oracle:
         return {"initiation": (max(0.0, e.onset_s - pad), min(e.peak_s + pad, e.duration_s)),
                 "runout": (max(0.0, fast_start - pad), min(end + pad, e.duration_s))}
 
-    def region(self, t0: float, t1: float) -> np.ndarray:
-        """[3, 2] box (m) holding the particles moving in [t0, t1], padded, ahead of the
-        front by a share of the travel, within the domain; the whole domain if none move."""
-        box = moving_extent(self.positions, self.dt, t0, t1, self.threshold)
-        if box is None:
-            return self.bounds.copy()
+    def region(self, t0: float, t1: float) -> list[np.ndarray]:
+        """[3, 2] boxes (m) holding the particles moving in [t0, t1]: one per slab along the
+        flow (x), hugging the moving material so that the static base stays out; padded, the
+        front one ahead by a share of the travel, within the domain; the whole domain if
+        nothing moves."""
+        pts = moving_points(self.positions, self.dt, t0, t1, self.threshold)
+        if pts is None:
+            return [self.bounds.copy()]
         pad = self.o.roi_pad_m + self.spacing
-        box = box + np.array([-pad, pad])
+        edges = np.linspace(pts[:, 0].min(), pts[:, 0].max(), self.o.roi_slabs + 1)
+        slab = np.clip(np.searchsorted(edges, pts[:, 0], side="right") - 1, 0,
+                       self.o.roi_slabs - 1)
+        boxes = []
+        for j in range(self.o.roi_slabs):
+            p = pts[slab == j]
+            if len(p):
+                boxes.append(np.stack([p.min(axis=0) - pad, p.max(axis=0) + pad], axis=1))
         travel = self.displacement[1]
-        box[0, 1] += self.o.roi_front_pad * travel  # x: the flow direction
-        box[2, 1] += self.o.roi_front_pad * travel * 0.5  # z: heaving ahead of the front
-        return np.clip(box, self.bounds[:, :1], self.bounds[:, 1:])
+        boxes[-1][0, 1] += self.o.roi_front_pad * travel  # x: the flow direction
+        boxes[-1][2, 1] += self.o.roi_front_pad * travel * 0.5  # z: heaving ahead of the front
+        return [np.clip(b, self.bounds[:, :1], self.bounds[:, 1:]) for b in boxes]
 
     def weight(self, t0: float, t1: float) -> float:
         """How fast the material moves in [t0, t1]: the integral of the speed scale."""
@@ -138,11 +148,11 @@ class Oracle:
         for phase, (t0, t1) in windows.items():
             segs = _segments(t0, t1, o.segments)
             for k, (a, b) in enumerate(segs):
-                box = self.region(a, b)
-                name = f"{phase}_{k}"
-                regions.append({"name": name, "lo_m": box[:, 0].tolist(),
-                                "hi_m": box[:, 1].tolist()})
-                boxes[name] = box
+                for j, box in enumerate(self.region(a, b)):
+                    name = f"{phase}_{k}_{j}"
+                    regions.append({"name": name, "lo_m": box[:, 0].tolist(),
+                                    "hi_m": box[:, 1].tolist()})
+                    boxes.setdefault(f"{phase}_{k}", []).append((name, box))
             schedules[phase] = segs
         views = (("side", "initiation", (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
                  ("top", "runout", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
@@ -154,9 +164,10 @@ class Oracle:
             segs = schedules[phase]
             # segment k renders f_k + 1 instants, its last one shared with segment k + 1
             share = _allocate([self.weight(a, b) for a, b in segs], max(budget - 1, len(segs)))
-            names = [f"{phase}_{k}" for k in range(len(segs))]
-            lo = np.min([boxes[n][:, 0] for n in names], axis=0)
-            hi = np.max([boxes[n][:, 1] for n in names], axis=0)
+            windows_boxes = [boxes[f"{phase}_{k}"] for k in range(len(segs))]
+            every_box = [b for wb in windows_boxes for _, b in wb]
+            lo = np.min([b[:, 0] for b in every_box], axis=0)
+            hi = np.max([b[:, 1] for b in every_box], axis=0)
             pad = o.margin * (hi - lo).max() * 0.5
             camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)
             out_views.append({
@@ -164,8 +175,8 @@ class Oracle:
                 "field": "displacement", "colormap": o.colormap,
                 "range": [0.0, float(hi_d * (1.0 + o.margin))],
                 "schedule": [{"t_start_s": a, "t_end_s": b, "every_s": (b - a) / int(f),
-                              "regions": [n]}
-                             for (a, b), f, n in zip(segs, share, names, strict=True)]})
+                              "regions": [n for n, _ in wb]}
+                             for (a, b), f, wb in zip(segs, share, windows_boxes, strict=True)]})
         e = self.events
         tol = lambda t: max(0.1 * t, self.dt)  # noqa: E731 - the events' stated tolerance
         spec = Spec.from_dict({

@@ -1,0 +1,386 @@
+"""`minority replay`: re-render a recorded run with its own spec or a new one, export it as a
+VTK series for ParaView, or re-publish it to a running render server.
+
+Offline, the log's chunks are assembled into steps as the daemon assembles them (a step is
+complete when it holds a chunk of every rank; what is missing at the end is rendered and
+reported incomplete) and rendered by `render_server.frames.render_views`, the daemon's own
+function, so the log's own spec gives pixel-identical frames. A new spec may ask for what the
+log does not hold; such views are reported per view, with the steps, and not rendered:
+- a field the chunks do not carry;
+- particles the simulation culled away: the view's regions at a step reach outside the
+  regions the recorded spec requested at that step, or its decimation needs particles (or
+  particle ids) that the recorded stride left out;
+- steps the new schedule wants that were never recorded (estimated from the recorded steps'
+  numbers and times: step numbers for every_steps windows, instants for every_s windows).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import zenoh
+
+from protocol import keys
+from protocol.errors import ProtocolError
+from protocol.log import read_log
+from protocol.messages import Chunk
+from protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
+from protocol.spec import ID_FIELD, Region, Spec, View
+from render_server.assemble import AssembledStep, StepAssembler
+from render_server.frames import render_views
+
+# The simulation's sender QoS (sim.publish.SENDER_QOS: block, data priority), not imported so
+# that replay does not load the simulation; tests check that the two agree.
+REPLAY_QOS = LOSSLESS_QOS
+MAX_PENDING_STEPS = 64  # steps assembled at once; past that the oldest is released incomplete
+SHOWN_STEPS = 8  # steps listed per reported problem
+UNRECORDED = "the new schedule wants them and the log does not hold them"
+
+
+class ReplayError(Exception):
+    """The log cannot be replayed as asked (no such run, no spec, no chunks)."""
+
+
+class NoServer(ReplayError):
+    """--publish found no render server subscribed to the run's chunks."""
+
+
+@dataclass
+class ViewReport:
+    frames: int = 0
+    problems: dict[str, list] = field(default_factory=lambda: defaultdict(list))  # why -> steps
+
+
+@dataclass
+class ReplaySummary:
+    run: str
+    spec_source: str  # "the log's spec" or "a given spec"
+    steps: int = 0  # steps assembled from the log
+    incomplete: list[tuple[int, int, int]] = field(default_factory=list)  # step, got, expected
+    frames: int = 0
+    views: dict[str, ViewReport] = field(default_factory=dict)
+    unchecked: int = 0  # due steps the recorded spec did not schedule (culling not known)
+    late: int = 0  # chunks of a step already released, or duplicates
+    out: Path | None = None
+    vtk: Path | None = None
+
+    def text(self) -> str:
+        lines = [f"run {self.run}: {self.steps} steps replayed with {self.spec_source}, "
+                 f"{self.frames} frames"
+                 + (f" in {self.out}" if self.out else "")]
+        if self.vtk:
+            lines.append(f"VTK series: {self.vtk}")
+        if self.incomplete:
+            lines.append(f"{len(self.incomplete)} incomplete steps (step: chunks of ranks): "
+                         + ", ".join(f"{s}: {g}/{e}" for s, g, e in self.incomplete[:SHOWN_STEPS])
+                         + (" ..." if len(self.incomplete) > SHOWN_STEPS else ""))
+        if self.late:
+            lines.append(f"{self.late} chunks dropped as duplicates or late")
+        if self.unchecked:
+            lines.append(f"{self.unchecked} steps that the recorded spec did not schedule: "
+                         f"rendered without checking their regions and decimation")
+        for name, v in self.views.items():
+            lines.append(f"view {name}: {v.frames} frames")
+            for why, steps in v.problems.items():
+                shown = ", ".join(map(str, steps[:SHOWN_STEPS]))
+                more = f" and {len(steps) - SHOWN_STEPS} more" if len(steps) > SHOWN_STEPS else ""
+                lines.append(f"  NOT RENDERED at {len(steps)} steps ({shown}{more}): {why}")
+        return "\n".join(lines)
+
+
+def log_specs(path: Path) -> list[Spec]:
+    """Every spec recorded in the log, in file order."""
+    return [r.decode() for r in read_log(path, ["minority/*/spec"])]
+
+
+def log_run(path: Path, specs: list[Spec], run: str | None = None) -> str:
+    """The run to replay: `run`, else that of the log's last spec, else of its first chunk."""
+    if run is not None:
+        return run
+    if specs:
+        return specs[-1].run
+    first = next(read_log(path, ["minority/*/chunk"]), None)
+    if first is None:
+        raise ReplayError(f"{path}: no chunks and no spec recorded (is it a minority MCAP log?)")
+    return keys.parse(first.topic).run
+
+
+def recorded_steps(path: Path, run: str, assembler: StepAssembler
+                   ) -> Iterator[tuple[AssembledStep, Spec | None]]:
+    """The run's steps, assembled in log order, each with the recorded spec in force then."""
+    spec = None
+    for record in read_log(path, [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
+        message = record.decode()
+        if isinstance(message, Spec):
+            spec = message
+            continue
+        for step in assembler.add(message, record.log_ns, len(record.data)):
+            yield step, spec
+    for step in assembler.drain(time.time_ns()):
+        yield step, spec
+
+
+def covered(boxes: tuple[Region, ...], by: tuple[Region, ...]) -> bool:
+    """Whether the union of `by` holds every box of `boxes` (exact: each box is cut by the
+    planes of `by` and the centre of every cell must lie in some box of `by`)."""
+    return all(_box_covered(b.lo_m, b.hi_m, tuple((r.lo_m, r.hi_m) for r in by)) for b in boxes)
+
+
+@lru_cache(maxsize=1024)
+def _box_covered(lo, hi, by) -> bool:
+    if any(all(l0 <= a and b <= h0 for a, b, l0, h0 in zip(lo, hi, blo, bhi, strict=True))
+           for blo, bhi in by):
+        return True
+    axes = []
+    for a in range(3):
+        cuts = sorted({lo[a], hi[a], *(x for blo, bhi in by for x in (blo[a], bhi[a])
+                                       if lo[a] < x < hi[a])})
+        axes.append([(c0 + c1) / 2 for c0, c1 in zip(cuts, cuts[1:], strict=False)] or [lo[a]])
+    return all(any(all(blo[a] <= p[a] <= bhi[a] for a in range(3)) for blo, bhi in by)
+               for p in itertools.product(*axes))
+
+
+def _names(regions: tuple[Region, ...]) -> str:
+    return ", ".join(r.name for r in regions)
+
+
+def missing_data(spec: Spec, view: View, step: AssembledStep, recorded: Spec | None) -> str:
+    """Why the log cannot give `view` (due at `step`) what it shows, or "" when it can."""
+    if view.field not in step.fields:
+        return f"field {view.field!r} is not in the log (it holds {sorted(step.fields)})"
+    request = recorded and recorded.request(step.step, step.time_s, step.prev_time_s)
+    if not request:
+        return ""  # the recorded spec did not ask for this step: nothing to check against
+    wanted = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
+    if request.regions is not None and (wanted is None or not covered(wanted, request.regions)):
+        shown = "every particle" if wanted is None else f"regions {_names(wanted)}"
+        return (f"it shows {shown}; the simulation sent only the particles in regions "
+                f"{_names(request.regions)}")
+    k, stride = view.decimate, request.decimate
+    if k % stride:
+        return (f"decimate {k} needs particles that the recorded stride {stride} left out")
+    if k != stride and ID_FIELD not in step.fields:
+        return (f"decimate {k} needs particle ids to pick from the recorded stride {stride}, "
+                f"and the log holds no {ID_FIELD!r} field")
+    return ""
+
+
+def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list[int | str]:
+    """About which steps (every_steps windows) or instants (every_s windows) `view` would
+    render within the recorded span that the log does not hold; steps: (step, time_s s,
+    prev_time_s s) of the recorded steps."""
+    if not steps:
+        return []
+    steps = sorted(steps)
+    nums = np.array([s for s, _, _ in steps])
+    times = np.array([t for _, t, _ in steps])
+    missing: set[int] = set()
+    instants: set[float] = set()
+    for w in view.schedule:
+        if w.every_s is None:
+            first = -(-int(nums[0]) // w.every_steps) * w.every_steps
+            cand = np.arange(first, int(nums[-1]) + 1, w.every_steps)
+            cand = cand[~np.isin(cand, nums)]
+            t = np.interp(cand, nums, times)
+            missing.update(cand[(t >= w.t_start_s) & (t <= w.t_end_s)].tolist())
+            continue
+        e, t0 = w.every_s, w.t_start_s
+        s0, first_t, first_prev = steps[0]
+        k_lo = (math.floor((first_prev - t0) / e) + 1 if first_prev is not None
+                else math.ceil((first_t - t0) / e))
+        k_hi = math.floor((min(float(times[-1]), w.t_end_s) - t0) / e)
+        done = {math.floor((t - t0) / e) for s, t, p in steps if w.wants(s, t, p)}
+        instants.update(t0 + k * e for k in range(max(k_lo, 0), k_hi + 1) if k not in done)
+    return sorted(missing) + [f"t={t:.6g} s" for t in sorted(instants)]
+
+
+def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
+           vtk: Path | None = None, run: str | None = None, shadows: bool = False,
+           progress: Callable[[str], None] | None = None) -> ReplaySummary:
+    """Re-render the log at `path` into out/{view}/{step:06d}.png (out None: render nothing)
+    with `spec` (None: the log's last spec), and/or export its steps to a VTK series in `vtk`."""
+    specs = log_specs(path)
+    run = log_run(path, specs, run)
+    own = [s for s in specs if s.run == run]
+    if spec is None and out is not None and not own:
+        raise ReplayError(f"{path}: no spec of run {run!r} is recorded; pass --spec")
+    summary = ReplaySummary(run, "the log's spec" if spec is None else "a given spec",
+                            out=out, vtk=vtk)
+    spec = spec if spec is not None else (own[-1] if own else None)
+    if spec is not None and out is not None:
+        summary.views = {v.name: ViewReport() for v in spec.views}
+    series = VtkSeries(vtk, run) if vtk is not None else None
+    assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
+    canvases: dict = {}
+    seen: list[tuple[int, float, float | None]] = []
+    for step, recorded in recorded_steps(path, run, assembler):
+        summary.steps += 1
+        seen.append((step.step, step.time_s, step.prev_time_s))
+        if step.incomplete:
+            summary.incomplete.append((step.step, step.ranks_received, step.ranks_expected))
+        if series is not None:
+            series.add(step)
+        if out is None:
+            continue
+        ok = []
+        due = spec.wants(step.step, step.time_s, step.prev_time_s)
+        if recorded is None or not recorded.request(step.step, step.time_s, step.prev_time_s):
+            summary.unchecked += bool(due)
+        for view in due:
+            why = missing_data(spec, view, step, recorded)
+            if why:
+                summary.views[view.name].problems[why].append(step.step)
+            else:
+                ok.append(view)
+        rendered = 0
+        for r in render_views(step, spec, canvases, shadows, ok):
+            if r.error:  # not expected: missing_data checked the field
+                summary.views[r.view.name].problems[r.error].append(step.step)
+                continue
+            target = out / r.view.name / f"{step.step:06d}.png"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(r.png)
+            summary.views[r.view.name].frames += 1
+            rendered += 1
+        summary.frames += rendered
+        if progress is not None and due:
+            progress(f"step {step.step} (t = {step.time_s:.6g} s): {rendered} of {len(due)} "
+                     f"due views rendered" + (" [incomplete]" if step.incomplete else ""))
+    summary.late = assembler.stats.late + assembler.stats.duplicates
+    if series is not None:
+        summary.vtk = series.close()
+    if summary.steps == 0:
+        raise ReplayError(f"{path}: no chunks of run {run!r} recorded")
+    for view in (spec.views if out is not None else ()):
+        gaps = unrecorded(view, seen)
+        if gaps:
+            summary.views[view.name].problems[UNRECORDED] = gaps
+    return summary
+
+
+class VtkSeries:
+    """Steps as a VTK series for ParaView: {stem}_{step:06d}.vtp (points, one vertex cell per
+    particle, every field as point data, TimeValue s) and {stem}.pvd with the simulated times."""
+
+    def __init__(self, directory: Path, stem: str):
+        self.directory, self.stem = Path(directory), stem
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.entries: list[tuple[float, str]] = []
+
+    def add(self, step: AssembledStep) -> Path:
+        from vtkmodules.util.numpy_support import numpy_to_vtk
+        from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkPoints
+        from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+        from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+        n = len(step.positions)
+        poly, pts, verts = vtkPolyData(), vtkPoints(), vtkCellArray()
+        pts.SetData(numpy_to_vtk(np.ascontiguousarray(step.positions), deep=True))
+        verts.SetData(numpy_to_vtk(np.arange(n + 1, dtype=np.int64), deep=True),
+                      numpy_to_vtk(np.arange(n, dtype=np.int64), deep=True))
+        poly.SetPoints(pts)
+        poly.SetVerts(verts)
+        for name, values in step.fields.items():
+            array = numpy_to_vtk(np.ascontiguousarray(values), deep=True)
+            array.SetName(name)
+            poly.GetPointData().AddArray(array)
+        t = vtkDoubleArray()
+        t.SetName("TimeValue")
+        t.InsertNextValue(step.time_s)
+        poly.GetFieldData().AddArray(t)
+        name = f"{self.stem}_{step.step:06d}.vtp"
+        w = vtkXMLPolyDataWriter()
+        w.SetFileName(str(self.directory / name))
+        w.SetInputData(poly)
+        w.SetDataModeToAppended()
+        w.EncodeAppendedDataOff()
+        if not w.Write():
+            raise OSError(f"cannot write {self.directory / name}")
+        self.entries.append((step.time_s, name))
+        return self.directory / name
+
+    def close(self) -> Path:
+        """Write {stem}.pvd listing the files by simulated time (s)."""
+        lines = ['<?xml version="1.0"?>',
+                 '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+                 "  <Collection>"]
+        lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>'
+                  for t, f in sorted(self.entries)]
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        pvd = self.directory / f"{self.stem}.pvd"
+        pvd.write_text("\n".join(lines))
+        return pvd
+
+
+@dataclass
+class PublishSummary:
+    run: str
+    chunks: int = 0
+    specs: int = 0
+    wall_s: float = 0.0
+    log_s: float = 0.0  # span of log time re-published, s
+
+
+def publish(path: Path, session: zenoh.Session, rate: float = 1.0, run: str | None = None,
+            wait_s: float = 10.0, stop: threading.Event | None = None) -> PublishSummary:
+    """Re-publish the run's recorded chunks and specs at the recorded pacing (log times
+    divided by `rate`; 0: as fast as possible) with the simulation's QoS. Waits up to wait_s
+    for a subscriber of the run's chunks (a render server) before the first chunk."""
+    run = log_run(path, log_specs(path), run)
+    stop = stop or threading.Event()
+    summary = PublishSummary(run)
+    start_wall = start_log = None
+    matched = False
+    for record in read_log(path, [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
+        if start_log is None:
+            start_wall, start_log = time.monotonic(), record.log_ns
+        if rate > 0:
+            due = start_wall + (record.log_ns - start_log) * 1e-9 / rate
+            if stop.wait(max(0.0, due - time.monotonic())):
+                break
+        if stop.is_set():
+            break
+        try:
+            message = record.decode()  # validated as the server will
+        except ProtocolError:
+            continue
+        if isinstance(message, Chunk):
+            key = keys.chunk(run, message.step, message.rank)
+            if not matched:
+                matched = _wait_for_subscriber(session, key, wait_s)
+                if not matched:
+                    raise NoServer(f"no render server subscribes to {key} within {wait_s:g} s "
+                                      f"(start `minority serve` with a spec of run {run!r})")
+            put(session, key, bytearray(record.data), REPLAY_QOS)  # sent stamp renewed
+            summary.chunks += 1
+        else:
+            put(session, keys.spec(run), message.encode(), CONTROL_QOS)
+            summary.specs += 1
+        summary.log_s = (record.log_ns - start_log) * 1e-9
+    summary.wall_s = 0.0 if start_wall is None else time.monotonic() - start_wall
+    if summary.chunks == 0 and not stop.is_set():
+        raise ReplayError(f"{path}: no chunks of run {run!r} recorded")
+    return summary
+
+
+def _wait_for_subscriber(session: zenoh.Session, key: str, wait_s: float) -> bool:
+    """Whether a subscriber of `key` is known within wait_s seconds (a matching listener)."""
+    found = threading.Event()
+    pub = session.declare_publisher(key, congestion_control=REPLAY_QOS.congestion,
+                                    priority=REPLAY_QOS.priority)
+    listener = pub.declare_matching_listener(lambda status: status.matching and found.set())
+    try:
+        return pub.matching_status.matching or found.wait(wait_s)
+    finally:
+        listener.undeclare()
+        pub.undeclare()

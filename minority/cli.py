@@ -4,20 +4,13 @@ from __future__ import annotations
 
 import argparse
 import signal
+import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
-NOT_BUILT = 2  # exit status of a subcommand that is not built yet
 DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not imported here)
-
-
-def _not_built(name: str):
-    def run(args: argparse.Namespace) -> int:
-        print(f"minority {name}: not built yet", file=sys.stderr)
-        return NOT_BUILT
-    return run
 
 
 def _add_network(p: argparse.ArgumentParser) -> None:
@@ -96,7 +89,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to {args.out}/{spec.run}/"
           + (f", log {record}" if record else ""), file=sys.stderr, flush=True)
     try:
-        stop.wait()
+        while not stop.wait(0.2):
+            if args.exit_when_done and server.finished.is_set():
+                print("every rank is done and the last step rendered", file=sys.stderr)
+                break
     finally:
         server.close()
         session.close()
@@ -122,7 +118,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             from sim.publish import PublishOptions
 
             publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
-                                     record=args.record)
+                                     record=args.record, stats_every_s=args.stats_every_s)
         config = RankRunConfig(scene_path=scene, out=args.out or Path(f"{scene.stem}.h5"),
                                dt=args.dt, threads=args.threads,
                                rebalance_every=args.rebalance_every, progress=not args.quiet,
@@ -150,6 +146,135 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from minority.replay import ReplayError, replay
+    from protocol.errors import ProtocolError, SpecError
+
+    def fail(exc: Exception, status: int) -> int:
+        print(f"minority replay: error: {exc}", file=sys.stderr)
+        return status
+
+    if args.rate < 0:
+        return fail(ValueError("--rate must be 0 (as fast as possible) or positive"), 2)
+    if not args.log.is_file():
+        return fail(FileNotFoundError(f"{args.log}: no such file"), 2)
+    if args.publish:
+        if args.spec or args.out or args.vtk:
+            print("minority replay: --publish re-sends the chunks only; the server renders them "
+                  "with its own spec (--spec, --out, --vtk ignored)", file=sys.stderr)
+        return _replay_publish(args)
+    from protocol.spec import Spec
+
+    out = args.out
+    if out is None and args.vtk is None:
+        out = args.log.parent / f"{args.log.stem}-replay"
+    progress = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    try:
+        spec = Spec.load(args.spec) if args.spec else None
+        summary = replay(args.log, spec, out, args.vtk, args.run, args.shadows, progress)
+    except (ReplayError, SpecError, ProtocolError) as exc:
+        return fail(exc, 2)
+    except OSError as exc:
+        return fail(exc, 1)
+    print(summary.text())
+    return 0
+
+
+def _replay_publish(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from minority.replay import NoServer, ReplayError, publish
+    from protocol.session import Role, open_session, options_from_args
+
+    opts = options_from_args(args)
+    opts.connect_timeout_s = args.wait
+    try:
+        session = open_session(opts, Role.SERVER if args.listen else Role.CLIENT)
+    except zenoh.ZError as exc:
+        where = ", ".join(opts.connect) or "the default endpoint"
+        print(f"minority replay: cannot reach a zenoh peer at {where} within {args.wait:g} s "
+              f"(start `minority serve` first, or pass --connect): {exc}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        s = publish(args.log, session, args.rate, args.run, args.wait, stop)
+    except ReplayError as exc:
+        print(f"minority replay: error: {exc}", file=sys.stderr)
+        return 1 if isinstance(exc, NoServer) else 2
+    finally:
+        session.close()
+    print(f"run {s.run}: re-published {s.chunks} chunks and {s.specs} specs "
+          f"({s.log_s:.3f} s of log time in {s.wall_s:.3f} s)")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    if args.log == "score":
+        return _cmd_score(args)
+    if args.operands:
+        print(f"minority report: error: one log at a time (extra: {' '.join(args.operands)})",
+              file=sys.stderr)
+        return 2
+    from minority.report import ReportError, report
+
+    try:
+        text = report(Path(args.log), args.out, not args.no_plots, args.run)
+    except ReportError as exc:  # bad input
+        print(f"minority report: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"minority report: error: {exc}", file=sys.stderr)
+        return 1
+    print(text, end="")
+    return 0
+
+
+def _cmd_score(args: argparse.Namespace) -> int:
+    import json
+
+    from minority.score import ScoreError, load_run, markdown, score
+    from protocol.errors import ProtocolError, SpecError
+    from protocol.spec import Spec
+
+    if len(args.operands) != 2:
+        print("minority report score: usage: minority report score SPEC.json RUN.mcap "
+              "[--out DIR]", file=sys.stderr)
+        return 2
+    spec_path, log_path = (Path(a) for a in args.operands)
+    try:
+        spec = Spec.load(spec_path)
+        if not log_path.is_file():
+            raise ScoreError(f"{log_path}: no such file")
+        result = score(spec, load_run(log_path))
+    except (ScoreError, SpecError, ProtocolError) as exc:
+        print(f"minority report score: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"minority report score: error: {exc}", file=sys.stderr)
+        return 1
+    text = markdown(result)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "score.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+        (args.out / "score.md").write_text(text)
+    print(text, end="")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from minority.demo import DemoOptions, main
+
+    try:
+        return main(DemoOptions(out=args.out, ranks=args.ranks, duration_s=args.duration,
+                                cell_size_m=args.cell_size, frames=args.frames,
+                                threads=args.threads))
+    except (RuntimeError, ValueError, OSError, subprocess.TimeoutExpired) as exc:
+        print(f"minority demo: error: {exc}", file=sys.stderr)
+        return 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="minority",
@@ -173,6 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render a step with what arrived S seconds after its first chunk "
                         "(default 5)")
     p.add_argument("--shadows", action="store_true", help="cast shadow rays (slower)")
+    p.add_argument("--exit-when-done", action="store_true",
+                   help="exit once every rank of the run is done and its last step rendered "
+                        "(for batch jobs and the demo; default: serve until stopped)")
     _add_network(p)
     p.set_defaults(func=_cmd_serve)
 
@@ -209,6 +337,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "one try; without a server the sim runs on and says so)")
     p.add_argument("--no-publish", action="store_true",
                    help="no network: do not look for a server, publish or record")
+    p.add_argument("--stats-every-s", type=float, default=0.005, metavar="S",
+                   help="each rank publishes flow statistics (speed histograms, kinetic energy, "
+                        "displacement; for the oracle's score) every S s of simulated time "
+                        "(0: none; default 0.005)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     _add_network(p)
     p.set_defaults(func=_cmd_sim)
@@ -216,16 +348,67 @@ def build_parser() -> argparse.ArgumentParser:
     from minority.oracle_cli import add_oracle_parser
     add_oracle_parser(sub)
 
-    p = sub.add_parser("replay", help="re-render or re-publish a recorded MCAP log",
-                       description="Re-render a recorded run with a new spec, or re-publish it.")
-    p.add_argument("log", type=Path, help="MCAP file written by `minority record` or `serve`")
+    p = sub.add_parser("replay", help="re-render, export or re-publish a recorded MCAP log",
+                       description="Re-render the chunks of a recorded run with the log's own "
+                                   "spec (its last) or a new one into DIR/{view}/{step:06d}.png "
+                                   "(the daemon's renderer: the log's spec gives the same "
+                                   "pixels); views needing data the log does not hold (a "
+                                   "field, particles culled away, steps never recorded) are "
+                                   "reported, not rendered. --vtk exports the steps for "
+                                   "ParaView; --publish re-sends the chunks to a running "
+                                   "`minority serve`. Exit status 2 on bad input, 1 when a "
+                                   "file or the network fails.")
+    p.add_argument("log", type=Path, metavar="RUN.mcap",
+                   help="MCAP file written by `minority serve` or `minority record`")
+    p.add_argument("--spec", type=Path, metavar="FILE",
+                   help="spec JSON to render with (default: the last spec in the log)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="frame directory (default: RUN-replay beside the log); frames are "
+                        "rendered when --out is given or neither --vtk nor --publish is")
+    p.add_argument("--vtk", type=Path, metavar="DIR",
+                   help="write every recorded step as DIR/{run}_{step:06d}.vtp (all recorded "
+                        "fields as point data) plus DIR/{run}.pvd with the simulated times")
+    p.add_argument("--publish", action="store_true",
+                   help="re-publish the recorded chunks and spec to a running render server "
+                        "instead of rendering")
+    p.add_argument("--rate", type=float, default=1.0, metavar="R",
+                   help="with --publish: pace of the recorded log times (2: twice as fast, "
+                        "0: as fast as possible; default 1)")
+    p.add_argument("--run", metavar="ID",
+                   help="the run to replay when the log holds several (default: the run of "
+                        "its last spec)")
+    p.add_argument("--shadows", action="store_true",
+                   help="cast shadow rays (as `minority serve --shadows` did)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="with --publish: wait S seconds for the server (default 10)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     _add_network(p)
-    p.set_defaults(func=_not_built("replay"))
+    p.set_defaults(func=_cmd_replay)
 
+    # `minority report RUN.mcap` reports a log; `minority report score SPEC RUN.mcap` (the
+    # oracle score) is its sibling: a first positional equal to "score" selects it (a log
+    # file named "score" is passed as ./score) and its operands land in `operands`.
     p = sub.add_parser("report", help="timing tables and oracle scores from a log",
-                       description="Turn an MCAP log into timing tables and plots.")
-    p.add_argument("log", type=Path, help="MCAP file")
-    p.set_defaults(func=_not_built("report"))
+                       description="Turn the MCAP log of a run (written by `minority serve`) "
+                                   "into markdown on stdout: mean receive / setup / render "
+                                   "time per in situ step and per view (ms, and % of the "
+                                   "total), frames per view, bytes received vs a full dump "
+                                   "(MB = 1e6 bytes), skipped and incomplete steps; and two PNG "
+                                   "plots, LOG_STEM.timing.png and LOG_STEM.bytes.png. Exit "
+                                   "status 2 on bad input (no such file, not MCAP, no timing "
+                                   "records), 1 when a file cannot be read or written. "
+                                   "`minority report score SPEC.json RUN.mcap [--out DIR]`: the "
+                                   "oracle's predictions (events, displacement, regions, "
+                                   "frames in the critical windows, bytes) against the run's "
+                                   "in situ statistics, markdown (and score.json with --out).")
+    p.add_argument("log", metavar="RUN.mcap", help="MCAP log of the run")
+    p.add_argument("operands", nargs="*", help=argparse.SUPPRESS)  # of `report score`
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="directory for the PNG plots (default: the log's directory)")
+    p.add_argument("--no-plots", action="store_true", help="write no PNG, only the markdown")
+    p.add_argument("--run", metavar="ID",
+                   help="the run to report when the log holds timing of several runs")
+    p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("record", help="record every minority message to MCAP",
                        description="Subscribe to minority/{run}/** and write every message to an "
@@ -250,7 +433,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the whole pipeline on one machine, embedded defaults",
                        description="Oracle rollout, spec, render server, 2-rank sim, frames, "
                                    "log, report and score, on one machine.")
-    p.set_defaults(func=_not_built("demo"))
+    p.add_argument("--out", type=Path, default=Path("demo"), metavar="DIR",
+                   help="where everything goes (default: demo/)")
+    p.add_argument("--ranks", type=int, default=2, help="MPI ranks of the sim (default 2)")
+    p.add_argument("--duration", type=float, default=0.7, metavar="S",
+                   help="simulated time, s (default 0.7: the runout ends near 0.56 s)")
+    p.add_argument("--cell-size", type=float, default=0.016, metavar="M",
+                   help="grid cell, m: 0.016 gives 12,960 particles (default), 0.032 gives 1,620")
+    p.add_argument("--frames", type=int, default=90, help="frame budget, all views (default 90)")
+    p.add_argument("--threads", type=int, default=1, help="threads per process (default 1)")
+    p.set_defaults(func=_cmd_demo)
     return parser
 
 

@@ -9,13 +9,6 @@ from pathlib import Path
 DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
 
 
-def _not_built(name: str):
-    def run(args: argparse.Namespace) -> int:
-        print(f"minority oracle {name}: not built yet", file=sys.stderr)
-        return 2
-    return run
-
-
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from gns.dataset import DatasetError, build
     from gns.sweep import SweepError, load_config, run_sweep

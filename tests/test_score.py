@@ -110,3 +110,17 @@ def test_no_stats_is_a_clear_error(tmp_path):
         pass
     with pytest.raises(ValueError, match="no stats records"):
         load_run(write_log_empty)
+
+
+def test_cli_report_score(tmp_path, capsys):
+    from minority.cli import main
+
+    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20))
+    make_spec().save(tmp_path / "spec.json")
+    assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "run.mcap"),
+                 "--out", str(tmp_path / "s")]) == 0
+    assert "| peak_motion | 0.360 |" in capsys.readouterr().out
+    assert (tmp_path / "s" / "score.json").is_file()
+    assert main(["report", "score", str(tmp_path / "spec.json")]) == 2
+    assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "no.mcap")]) == 2
+    assert "no.mcap: no such file" in capsys.readouterr().err

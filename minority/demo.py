@@ -1,0 +1,169 @@
+"""`minority demo`: the whole service on one machine, embedded defaults, no router.
+
+1. oracle: roll the shipped GNS checkpoint out on the demo column (seconds), derive the
+   spec (views, windows, cadence, regions, colormap range), export cameras and a preview;
+2. the render server in its own process, listening on loopback;
+3. the MPM column collapse on 2 ranks (MPI), publishing only what the spec asks for, plus
+   in situ statistics;
+4. frames and the MCAP log from the server; the timing report and the oracle's score.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from sim.columns import ColumnSpec, channel_column_toml
+
+ROOT = Path(__file__).resolve().parent.parent
+CHECKPOINT = ROOT / "gns" / "checkpoints" / "column_l64_m5.pt"
+RUN = "demo"
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    out: Path = Path("demo")
+    ranks: int = 2
+    duration_s: float = 0.7  # simulated; the runout ends near 0.56 s
+    cell_size_m: float = 0.016  # 0.016: 12,960 particles (the showcase); 0.032: 1,620
+    frames: int = 90  # frame budget, all views
+    width: int = 1024  # px
+    height: int = 768
+    threads: int = 1  # torch and numba threads per process
+    checkpoint: Path = CHECKPOINT
+    timeout_s: float = 600.0  # the sim's wall-clock limit
+
+
+def demo_column(o: DemoOptions) -> str:
+    """The showcase column (column_13k's geometry and material) at the demo's resolution;
+    the channel and the domain round up to whole cells."""
+    cells = lambda m: math.ceil(m / o.cell_size_m - 1e-9) * o.cell_size_m  # noqa: E731
+    return channel_column_toml(ColumnSpec(
+        length_m=0.144, height_m=0.32, width_m=cells(0.144), domain_length_m=cells(0.8),
+        domain_height_m=cells(0.4),
+        cell_size_m=o.cell_size_m, youngs_modulus_pa=2.0e6, friction_angle_deg=30.0,
+        floor_friction=0.5, side_friction=0.2, duration_s=o.duration_s,
+        output_interval_s=0.02), name="demo_column")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Steps:
+    """Prints each stage with its wall time."""
+
+    def __init__(self, log=sys.stderr):
+        self.log, self.t0 = log, time.perf_counter()
+
+    def __call__(self, text: str) -> None:
+        print(f"[demo {time.perf_counter() - self.t0:6.1f} s] {text}", file=self.log, flush=True)
+
+
+def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
+    import torch
+
+    from gns.oracle import Oracle, OracleOptions
+    from gns.predict import predict
+    from gns.runtime import tune_allocator
+    from minority.preview import preview
+    from protocol.paraview import write_pvcc_for_views
+
+    tune_allocator()
+    torch.set_num_threads(o.threads)
+    say(f"oracle: GNS rollout of the column ({o.checkpoint.name})")
+    p = predict(o.checkpoint, scene, o.duration_s)
+    d = o.out / "oracle"
+    rollout_h5 = p.write(d, vtk_every=4)
+    pos, dt = p.positions, p.frame_interval_s
+    say(f"oracle: {pos.shape[1]} particles, {len(pos) - 1} frames in {p.wall_s:.1f} s")
+    oracle = Oracle(pos, dt, p.bounds_m, p.spacing_m,
+                    OracleOptions(run=RUN, frames=o.frames, width=o.width, height=o.height))
+    spec = oracle.spec({"rollout": str(rollout_h5), "checkpoint": str(o.checkpoint)})
+    spec_path = o.out / "spec.json"
+    spec.save(spec_path)
+    write_pvcc_for_views(spec, d / "cameras")
+    preview(spec_path, rollout_h5, d / "preview.png")
+    s = oracle.summary()
+    say(f"oracle: onset {s['onset_s']:.3f} s, peak {s['peak_s']:.3f} s, runout end "
+        f"{s['runout_end_s']:.3f} s, displacement up to {s['displacement_range_m'][1]:.3f} m")
+    return spec_path, rollout_h5
+
+
+def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Path:
+    """Server process + sim ranks; returns the server's MCAP log."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    log_path = o.out / "run.mcap"
+    env = {**os.environ, "OMP_NUM_THREADS": str(o.threads),
+           "NUMBA_NUM_THREADS": str(o.threads)}
+    server_log = open(o.out / "server.log", "w")  # noqa: SIM115 - closed below
+    server = subprocess.Popen(
+        [sys.executable, "-m", "minority", "serve", "--spec", str(spec_path), "--out",
+         str(o.out / "frames"), "--record", str(log_path), "--listen", endpoint,
+         "--exit-when-done"], stdout=server_log, stderr=subprocess.STDOUT, env=env)
+    say(f"render server: pid {server.pid}, listening on {endpoint} (log {o.out / 'server.log'})")
+    try:
+        sim = subprocess.run(
+            [sys.executable, "-m", "minority", "sim", str(scene), "--ranks", str(o.ranks),
+             "--run", RUN, "--connect", endpoint, "--wait", "30", "--out",
+             str(o.out / "sim.h5"), "--threads", str(o.threads)],
+            env=env, timeout=o.timeout_s)
+        if sim.returncode != 0:
+            raise RuntimeError(f"the simulation failed (exit {sim.returncode})")
+        say("simulation done; waiting for the server to render the last steps")
+        server.wait(timeout=120)
+    finally:
+        if server.poll() is None:
+            server.send_signal(signal.SIGINT)
+            server.wait(timeout=60)
+        server_log.close()
+    if server.returncode != 0:
+        raise RuntimeError(f"the render server failed (exit {server.returncode}); see "
+                           f"{o.out / 'server.log'}")
+    return log_path
+
+
+def main(o: DemoOptions) -> int:
+    from minority.report import report
+    from minority.score import load_run, markdown, score
+    from protocol.spec import Spec
+
+    say = Steps()
+    o.out.mkdir(parents=True, exist_ok=True)
+    scene = o.out / "scene.toml"
+    scene.write_text(demo_column(o))
+    spec_path, rollout_h5 = run_oracle(o, scene, say)
+    log_path = run_pipeline(o, scene, spec_path, say)
+    (o.out / "report.md").write_text(report(log_path, o.out))
+    result = score(Spec.load(spec_path), load_run(log_path))
+    (o.out / "score.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    (o.out / "score.md").write_text(markdown(result))
+    say("done")
+    print(markdown(result))
+    print(WHERE.format(out=o.out, run=RUN))
+    return 0
+
+
+WHERE = """Files (in {out}/):
+  scene.toml            the simulated column (sim/README.md explains the keys)
+  oracle/rollout.h5     the GNS prediction; oracle/vtk/rollout.pvd opens it in ParaView
+  oracle/cameras/*.pvcc the spec's cameras for ParaView (View > Camera > Load)
+  oracle/preview.png    the spec's views rendered on the prediction
+  spec.json             the oracle spec the server rendered (edit it and replay the log)
+  frames/{run}/VIEW/*.png  the frames the render server ray-traced during the run
+  run.mcap              every message of the run (minority replay / report, MCAP viewers)
+  sim.h5                the MPM run's own output frames
+  report.md + *.png     receive / setup / render times per step and view
+  score.md, score.json  the oracle's predictions against what the run did
+"""

@@ -40,15 +40,30 @@ class Prediction:
         return h5
 
 
+def model_frames(checkpoint: Path) -> tuple[float, float, int]:
+    """(particle spacing m, frame interval s, history frames C) of a checkpoint."""
+    model, ckpt = load_checkpoint(checkpoint, "cpu")
+    st = ckpt["stats"]
+    return float(st["particle_spacing_m"]), float(st["frame_interval_s"]), \
+        model.config.input_velocities
+
+
 def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
-            device: str = "cpu", progress: bool = False, log=None) -> Prediction:
+            device: str = "cpu", progress: bool = False, log=None,
+            history: np.ndarray | None = None) -> Prediction:
     """Seed `scene` at the model's spacing and roll it out for duration_s (default: the
-    scene's). Raises RolloutError when the rollout diverges, ValueError on bad input."""
+    scene's). `history` [C + 1, n, 3] (m): the first frames, e.g. from the MPM (None: C + 1
+    frames at rest). Raises RolloutError when the rollout diverges, ValueError on bad input."""
     model, ckpt = load_checkpoint(checkpoint, device)
     st = ckpt["stats"]
-    init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"],
-                         model.config.input_velocities)
-    frames = max(1, round((duration_s or init.duration_s) / st["frame_interval_s"]))
+    c = model.config.input_velocities
+    init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"], c)
+    if history is not None:
+        if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
+            raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")
+        init.positions = np.asarray(history, dtype=np.float64)
+    total = max(c + 1, round((duration_s or init.duration_s) / st["frame_interval_s"]))
+    frames = total if history is None else total - c
     if log is not None:
         print(f"rollout: {init.name}, {init.positions.shape[1]} particles at "
               f"{st['particle_spacing_m']} m, {frames} frames of {st['frame_interval_s']} s",
@@ -57,7 +72,7 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
     pos, timing = rollout(model, init.positions, init.friction_deg, init.bounds_m, frames,
                           device=device, progress=progress)
     wall = time.perf_counter() - t0
-    return Prediction(pos[model.config.input_velocities:],  # the history is the rest state
+    return Prediction(pos if history is not None else pos[c:],  # rest history: one frame
                       float(st["frame_interval_s"]), float(st["particle_spacing_m"]),
                       np.asarray(init.bounds_m), float(init.friction_deg), init.name,
                       Path(scene), Path(checkpoint), wall, timing)

@@ -1,6 +1,7 @@
 """`minority demo`: the whole service on one machine, embedded defaults, no router.
 
-1. oracle: roll the shipped GNS checkpoint out on the demo column (seconds), derive the
+1. oracle: roll the shipped GNS checkpoint out on the demo column (seconds; its first
+   frames from the MPM at the model's spacing), derive the
    spec (views, windows, cadence, regions, colormap range), export cameras and a preview;
 2. the render server in its own process, listening on loopback;
 3. the MPM column collapse on 2 ranks (MPI), publishing only what the spec asks for, plus
@@ -74,15 +75,19 @@ def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
     import torch
 
     from gns.oracle import Oracle, OracleOptions
-    from gns.predict import predict
+    from gns.predict import model_frames, predict
     from gns.runtime import tune_allocator
     from minority.preview import preview
+    from minority.warmstart import mpm_history
     from protocol.paraview import write_pvcc_for_views
 
     tune_allocator()
     torch.set_num_threads(o.threads)
-    say(f"oracle: GNS rollout of the column ({o.checkpoint.name})")
-    p = predict(o.checkpoint, scene, o.duration_s)
+    spacing, dt, c = model_frames(o.checkpoint)
+    say(f"oracle: the first {c} frames from the MPM at {spacing} m, then the GNS "
+        f"({o.checkpoint.name})")
+    p = predict(o.checkpoint, scene, o.duration_s,
+                history=mpm_history(scene, spacing, dt, c))
     d = o.out / "oracle"
     rollout_h5 = p.write(d, vtk_every=4)
     pos, dt = p.positions, p.frame_interval_s
@@ -116,7 +121,8 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
     try:
         sim = subprocess.run(
             [sys.executable, "-m", "minority", "sim", str(scene), "--ranks", str(o.ranks),
-             "--run", RUN, "--connect", endpoint, "--wait", "30", "--out",
+             "--run", RUN, "--spec", str(spec_path), "--connect", endpoint, "--wait", "30",
+             "--out",
              str(o.out / "sim.h5"), "--threads", str(o.threads)],
             env=env, timeout=o.timeout_s)
         if sim.returncode != 0:

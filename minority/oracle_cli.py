@@ -63,8 +63,18 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        p = predict(args.checkpoint, scene_path(args.scene), args.duration, args.device,
-                    progress=True, log=sys.stderr)
+        scene = scene_path(args.scene)
+        history = None
+        if args.start == "mpm":
+            from gns.predict import model_frames
+            from minority.warmstart import mpm_history
+
+            spacing, dt, c = model_frames(args.checkpoint)
+            history = mpm_history(scene, spacing, dt, c)
+            print(f"rollout: the first {c} frames ({c * dt:.3f} s) from the MPM at {spacing} m",
+                  file=sys.stderr)
+        p = predict(args.checkpoint, scene, args.duration, args.device, progress=True,
+                    log=sys.stderr, history=history)
         h5 = p.write(args.out, args.vtk_every)
     except (RolloutError, ValueError, OSError, KeyError) as exc:
         print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
@@ -249,6 +259,10 @@ def add_oracle_parser(sub) -> None:
                    help="simulated time to predict, s (default: the scene's duration)")
     q.add_argument("--vtk-every", type=int, default=1, metavar="K",
                    help="write every K-th frame to the VTK series (default 1; 0: none)")
+    q.add_argument("--start", choices=["mpm", "rest"], default="mpm",
+                   help="first frames: mpm (default) runs the MPM at the model's spacing for "
+                        "the model's C history frames (the state its training saw); rest "
+                        "starts from C frames at rest")
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     q.set_defaults(func=_cmd_rollout)

@@ -1,0 +1,34 @@
+"""The oracle's warm start: the first frames from the MPM at the model's spacing."""
+
+import numpy as np
+import pytest
+
+from gns.predict import model_frames, predict
+from gns.rollout import initial_state
+from minority.demo import CHECKPOINT, DemoOptions, demo_column
+from minority.warmstart import mpm_history
+
+
+def test_mpm_history_starts_on_the_gns_lattice_and_falls(tmp_path):
+    scene = tmp_path / "column.toml"
+    scene.write_text(demo_column(DemoOptions(cell_size_m=0.032, duration_s=0.1)))
+    spacing, dt, c = model_frames(CHECKPOINT)
+    h = mpm_history(scene, spacing, dt, c)
+    rest = initial_state(scene, spacing, dt, c).positions[0]
+    assert h.shape == (c + 1, len(rest), 3)
+    order = lambda x: x[np.lexsort(x.T)]  # noqa: E731
+    np.testing.assert_allclose(order(h[0]), order(rest), atol=1e-9)  # the same particles
+    drop = h[0, :, 2].mean() - h[-1, :, 2].mean()
+    assert 0 < drop < 0.5 * 9.81 * (c * dt) ** 2 * 1.01  # falling, at most freely
+    p = predict(CHECKPOINT, scene, 0.05, history=h)
+    assert p.positions.shape[0] == 11  # 0.05 s at 5 ms, the first c + 1 from the MPM
+    np.testing.assert_allclose(p.positions[: c + 1], h, atol=1e-6)
+
+
+def test_mpm_history_refuses_a_domain_it_cannot_seed(tmp_path):
+    scene = tmp_path / "odd.toml"
+    text = demo_column(DemoOptions(cell_size_m=0.032))
+    line = next(t for t in text.splitlines() if t.startswith("size_m"))
+    scene.write_text(text.replace(line, "size_m = [0.81, 0.16, 0.416]"))
+    with pytest.raises(ValueError, match="cannot seed the MPM at the model's spacing"):
+        mpm_history(scene, 0.016, 0.005, 5)

@@ -45,6 +45,7 @@ class OracleOptions:
     roi_pad_m: float = 0.02  # padding of each region of interest beyond the moving extent, m
     roi_front_pad: float = 0.25  # extra padding ahead of the flow front, fraction of the travel
     roi_slabs: int = 4  # boxes per region of interest, slabs along the flow
+    speed_power: float = 2.0  # frames per segment in proportion to the integral of speed^p
     colormap: str = "Viridis (matplotlib)"
 
 
@@ -136,9 +137,11 @@ class Oracle:
         return [np.clip(b, self.bounds[:, :1], self.bounds[:, 1:]) for b in boxes]
 
     def weight(self, t0: float, t1: float) -> float:
-        """How fast the material moves in [t0, t1]: the integral of the speed scale."""
+        """How fast the material moves in [t0, t1]: the integral of the speed scale raised to
+        `speed_power` (2: kinetic energy, frames where motion is fastest)."""
         inside = (self.time >= t0) & (self.time <= t1)
-        return float(self.scale[inside].sum() * self.dt) if inside.any() else 0.0
+        return float((self.scale[inside] ** self.o.speed_power).sum() * self.dt) \
+            if inside.any() else 0.0
 
     # --- the spec ---------------------------------------------------------------------
     def spec(self, provenance: dict | None = None) -> Spec:

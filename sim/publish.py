@@ -70,6 +70,7 @@ from protocol.view import Window
 from sim.state import ParticleState
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
+SPEC_RETRY_S = 0.2  # s between spec queries while waiting for a starting server
 DRAIN_TIMEOUT_S = 5.0  # at close: wait this long for the outbox to empty
 OUTBOX_CHUNKS = 4  # chunks queued for the sender at most (the oldest is dropped)
 OUTBOX_BYTES = 256 * 1024 * 1024  # and at most this many bytes of them
@@ -411,10 +412,13 @@ class RankPublisher:
             return False
         return True
 
-    def fetch_spec(self, run: str) -> Spec | None:
-        """The spec the server serves for `run` (zenoh get with a timeout), else the spec
-        file of the options (its run must match), else None."""
-        if self.session is not None:
+    def fetch_spec(self, run: str, wait_s: float = 0.0) -> Spec | None:
+        """The spec the server serves for `run` (zenoh get with a timeout, asked again until
+        wait_s seconds have passed: a server that is still starting answers once it is ready
+        to receive, so nothing is published into the void), else the spec file of the
+        options (its run must match), else None."""
+        deadline = time.monotonic() + wait_s
+        while self.session is not None:
             for reply in self.session.get(keys.spec(run), timeout=self.options.spec_timeout_s):
                 if reply.ok is None:
                     continue
@@ -423,6 +427,9 @@ class RankPublisher:
                 except (ProtocolError, SpecError) as exc:
                     print(f"rank {self.rank}: ignoring a malformed spec from the server: {exc}",
                           file=self.log)
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(SPEC_RETRY_S)  # polling a server that is starting up, bounded by wait_s
         if self.options.spec_file is not None:
             spec = Spec.load(self.options.spec_file)
             if spec.run != run:

@@ -195,7 +195,7 @@ def _start_publishing(config, scene, sim, comm, log):
     pub.connect(config.wait_s)
     run = config.run or scene.name
     try:
-        spec = pub.fetch_spec(run)
+        spec = pub.fetch_spec(run, config.wait_s)
         error = None
     except Exception as exc:  # a bad spec file: every rank reads the same one
         spec, error = None, exc

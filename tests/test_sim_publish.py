@@ -505,3 +505,31 @@ def test_stats_every_s_must_be_a_time():
     for bad in (-0.001, math.nan, math.inf):
         with pytest.raises(ValueError, match="stats_every_s"):
             PublishOptions(stats_every_s=bad)
+
+
+def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpoint, tmp_path):
+    """The server's session listens before its spec queryable exists (it is warming up):
+    the rank keeps asking within --wait and follows the served spec, not the file."""
+    from sim.publish import RankPublisher
+
+    served = Spec.from_dict(spec_dict(every_steps=7))
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps(spec_dict(every_steps=20)))
+    asked = threading.Event()
+    ready = []
+
+    def on_query(query):  # the first question comes before the server is ready
+        if asked.is_set():
+            query.reply(keys.spec(RUN), bytes(served.encode()))
+        asked.set()
+
+    ready.append(server.declare_queryable(keys.spec(RUN), on_query))
+    pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)), PublishOptions(
+        network=NetworkOptions(connect=[endpoint]), spec_file=spec_file), io.StringIO())
+    try:
+        assert pub.connect(5.0)
+        assert pub.fetch_spec(RUN, wait_s=20.0) == served
+        assert asked.is_set()
+    finally:
+        pub.close()
+        ready[0].undeclare()

@@ -62,8 +62,8 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
         if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
             raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")
         init.positions = np.asarray(history, dtype=np.float64)
-    total = max(c + 1, round((duration_s or init.duration_s) / st["frame_interval_s"]))
-    frames = total if history is None else total - c
+    total = round((duration_s or init.duration_s) / st["frame_interval_s"])  # frames after t=0
+    frames = max(1, total if history is None else total - c)
     if log is not None:
         print(f"rollout: {init.name}, {init.positions.shape[1]} particles at "
               f"{st['particle_spacing_m']} m, {frames} frames of {st['frame_interval_s']} s",

@@ -70,9 +70,12 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
             from minority.warmstart import mpm_history
 
             spacing, dt, c = model_frames(args.checkpoint)
-            history = mpm_history(scene, spacing, dt, c)
-            print(f"rollout: the first {c} frames ({c * dt:.3f} s) from the MPM at {spacing} m",
-                  file=sys.stderr)
+            try:
+                history = mpm_history(scene, spacing, dt, c)
+                print(f"rollout: the first {c} frames ({c * dt:.3f} s) from the MPM at "
+                      f"{spacing} m", file=sys.stderr)
+            except ValueError as exc:
+                print(f"rollout: warning: {exc}; starting from rest instead", file=sys.stderr)
         p = predict(args.checkpoint, scene, args.duration, args.device, progress=True,
                     log=sys.stderr, history=history)
         h5 = p.write(args.out, args.vtk_every)

@@ -35,6 +35,7 @@ from render_server.frames import render_views
 from render_server.render import Canvas, prepare, render
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
+TOKEN_GRACE_S = 1.0  # a rank whose token vanished without a done event: gone this much later
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
 
 
@@ -117,6 +118,11 @@ class RenderServer:
         self.finished = threading.Event()
         self._ranks_expected = 0  # from the chunks' rank count and the live tokens
         self._ranks_gone: set[int] = set()
+        # a done event carries the rank's chunk count: the rank is gone once they all came
+        # (the event travels at a higher priority than the chunks and may overtake them)
+        self._rank_chunks_sent: dict[int, int] = {}
+        self._rank_chunks_received: dict[int, int] = {}
+        self._token_gone_ns: dict[int, int] = {}
         self._drained = threading.Event()  # nothing more to assemble; set after the last put
         warm_up()  # compile the kernels now, not on the first step
         self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
@@ -144,6 +150,13 @@ class RenderServer:
             self._error(f"malformed event: {exc}")
             return
         if event.kind == EventKind.RANK_DONE and event.rank >= 0:
+            sent = event.detail.get("sent")
+            if type(sent) is int and sent >= 0:
+                with self._lock:
+                    self._rank_chunks_sent[event.rank] = sent
+                    waiting = self._rank_chunks_received.get(event.rank, 0) < sent
+                if waiting:
+                    return  # the receive loop marks it gone when its last chunk is in
             self._rank_gone(event.rank)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -151,18 +164,37 @@ class RenderServer:
         if not (parsed and parsed.rest and parsed.rest[0].isdigit()):
             return
         rank = int(parsed.rest[0])
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self._rank_gone(rank)
+        if sample.kind == zenoh.SampleKind.DELETE:  # died, or ended (its done event says)
+            with self._lock:
+                self._token_gone_ns.setdefault(rank, time.monotonic_ns())
         else:
             with self._lock:
                 self._ranks_expected = max(self._ranks_expected, rank + 1)
 
     def _rank_gone(self, rank: int) -> None:
         with self._lock:
-            self._ranks_gone.add(rank)
-            self._ranks_expected = max(self._ranks_expected, rank + 1)
-            for step in self._assembler.rank_gone(rank, time.time_ns()):
+            for step in self._gone_locked(rank):
                 self._latest.put(step)
+
+    def _settle_gone_ranks(self) -> list:
+        """Ranks whose done event's chunks have all arrived, or whose token vanished over
+        TOKEN_GRACE_S ago without one, are gone (called with the lock held)."""
+        now = time.monotonic_ns()
+        out = []
+        for rank, sent in list(self._rank_chunks_sent.items()):
+            if rank not in self._ranks_gone and self._rank_chunks_received.get(rank, 0) >= sent:
+                out += self._gone_locked(rank)
+        for rank, t in list(self._token_gone_ns.items()):
+            waiting = rank in self._rank_chunks_sent and rank not in self._ranks_gone
+            if rank not in self._ranks_gone and (now - t >= TOKEN_GRACE_S * 1e9) and (
+                    not waiting or now - t >= self.options.timeout_s * 1e9):
+                out += self._gone_locked(rank)
+        return out
+
+    def _gone_locked(self, rank: int) -> list:
+        self._ranks_gone.add(rank)
+        self._ranks_expected = max(self._ranks_expected, rank + 1)
+        return self._assembler.rank_gone(rank, time.time_ns())
 
     # --- threads --------------------------------------------------------------------
     def _receive_loop(self) -> None:
@@ -180,9 +212,12 @@ class RenderServer:
                     else:
                         self.stats.chunks += 1
                         self._ranks_expected = max(self._ranks_expected, chunk.ranks)
+                        r = chunk.rank
+                        self._rank_chunks_received[r] = self._rank_chunks_received.get(r, 0) + 1
                         done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
-                elif (self._ranks_expected and not self._drained.is_set()
-                      and self._ranks_gone >= set(range(self._ranks_expected))):
+                done += self._settle_gone_ranks()
+                if (item is None and self._ranks_expected and not self._drained.is_set()
+                        and self._ranks_gone >= set(range(self._ranks_expected))):
                     done += self._assembler.drain(time.time_ns())  # the run is over
                     drained = True
             for step in done:

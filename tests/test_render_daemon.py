@@ -218,3 +218,26 @@ def test_finished_after_every_rank_is_done_and_the_last_step_rendered(daemon, cl
     assert wait_until(lambda: timing.received >= 2)
     last = [decode_as(timing.get(1).payload, Timing) for _ in range(timing.received)][-1]
     assert last.step == 40 and last.incomplete and last.ranks_received == 1
+
+
+def test_a_done_event_that_overtakes_the_ranks_last_chunk_waits_for_it(daemon, client_factory):
+    """rank_done travels at a higher priority than the chunks: the rank counts as gone only
+    once the chunks its event counts have arrived, so its last step is rendered whole."""
+    from protocol import Event, EventKind
+
+    sim = client_factory()
+    timing = Inbox(sim, keys.timing(RUN))
+    send_step(sim, 0)
+    assert wait_until(lambda: timing.received == 1)
+    one = make_chunk(n=50, step=20, rank=1, ranks=2, seed=21, run=RUN)
+    put(sim, keys.chunk(RUN, 20, 1), one.encode(), LOSSLESS_QOS)
+    put(sim, keys.event(RUN), Event(RUN, EventKind.RANK_DONE, 0, "done", {"sent": 2}).encode(),
+        LOSSLESS_QOS)  # rank 0 says it sent 2 chunks; the server has 1 of them so far
+    assert wait_until(lambda: daemon.stats.chunks == 3)
+    assert timing.received == 1  # step 20 still waits for rank 0
+    zero = make_chunk(n=50, step=20, rank=0, ranks=2, seed=20, run=RUN)
+    put(sim, keys.chunk(RUN, 20, 0), zero.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: timing.received == 2)
+    timing.get(1)
+    t = decode_as(timing.get(1).payload, Timing)
+    assert t.step == 20 and t.ranks_received == 2 and not t.incomplete and t.particles == 100

@@ -18,26 +18,42 @@ def _add_network(p: argparse.ArgumentParser) -> None:
     add_network_args(p)
 
 
-def _cmd_record(args: argparse.Namespace) -> int:
+def _stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (a clean stop: logs closed, sessions closed)."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _open_peer(opts, role, command: str, wait_s: float):
+    """A zenoh session, or None after saying in one line why no peer was reached."""
     import zenoh
+
+    from protocol.session import open_session
+
+    try:
+        return open_session(opts, role)
+    except zenoh.ZError as exc:
+        where = ", ".join(opts.connect) or "the default endpoint"
+        print(f"minority {command}: cannot reach a zenoh peer at {where} within {wait_s:g} s "
+              f"(start `minority serve` first, or pass --connect): {exc}", file=sys.stderr)
+        return None
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
     from mcap.writer import CompressionType
 
     from protocol.log import Recorder
-    from protocol.session import Role, open_session, options_from_args
+    from protocol.session import Role, options_from_args
 
     opts = options_from_args(args)
     opts.connect_timeout_s = args.wait
     role = Role.SERVER if args.listen else Role.CLIENT  # --listen: sims may connect to us
-    try:
-        session = open_session(opts, role)
-    except zenoh.ZError as exc:
-        where = ", ".join(opts.connect) or "the default endpoint"
-        print(f"minority record: cannot reach a zenoh peer at {where} within {args.wait:g} s "
-              f"(start `minority serve` first, or pass --connect): {exc}", file=sys.stderr)
+    session = _open_peer(opts, role, "record", args.wait)
+    if session is None:
         return 1
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = _stop_on_signals()
     recorder = Recorder(session, args.output, run=args.run,
                         compression=CompressionType[args.compression.upper()],
                         flush_interval_s=args.flush_interval)
@@ -81,9 +97,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     except zenoh.ZError as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 1
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = _stop_on_signals()
     server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
                                                  shadows=args.shadows))
     print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to {args.out}/{spec.run}/"
@@ -181,23 +195,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _replay_publish(args: argparse.Namespace) -> int:
-    import zenoh
 
     from minority.replay import NoServer, ReplayError, publish
-    from protocol.session import Role, open_session, options_from_args
+    from protocol.session import Role, options_from_args
 
     opts = options_from_args(args)
     opts.connect_timeout_s = args.wait
-    try:
-        session = open_session(opts, Role.SERVER if args.listen else Role.CLIENT)
-    except zenoh.ZError as exc:
-        where = ", ".join(opts.connect) or "the default endpoint"
-        print(f"minority replay: cannot reach a zenoh peer at {where} within {args.wait:g} s "
-              f"(start `minority serve` first, or pass --connect): {exc}", file=sys.stderr)
+    session = _open_peer(opts, Role.SERVER if args.listen else Role.CLIENT, "replay", args.wait)
+    if session is None:
         return 1
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = _stop_on_signals()
     try:
         s = publish(args.log, session, args.rate, args.run, args.wait, stop)
     except ReplayError as exc:

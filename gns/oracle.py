@@ -45,6 +45,7 @@ class OracleOptions:
     roi_pad_m: float = 0.02  # padding of each region of interest beyond the moving extent, m
     roi_front_pad: float = 0.25  # extra padding ahead of the flow front, fraction of the travel
     roi_slabs: int = 4  # boxes per region of interest, slabs along the flow
+    roi_time_margin: float = 0.1  # regions cover their window widened by this share of t
     speed_power: float = 2.0  # frames per segment in proportion to the integral of speed^p
     colormap: str = "Viridis (matplotlib)"
 
@@ -151,7 +152,11 @@ class Oracle:
         for phase, (t0, t1) in windows.items():
             segs = _segments(t0, t1, o.segments)
             for k, (a, b) in enumerate(segs):
-                for j, box in enumerate(self.region(a, b)):
+                # the region covers the segment widened by the oracle's timing tolerance: a
+                # run that is early or late by that much still has its movers inside
+                wa = max(0.0, a - max(o.roi_time_margin * a, self.dt))
+                wb = min(self.events.duration_s, b + max(o.roi_time_margin * b, self.dt))
+                for j, box in enumerate(self.region(wa, wb)):
                     name = f"{phase}_{k}_{j}"
                     regions.append({"name": name, "lo_m": box[:, 0].tolist(),
                                     "hi_m": box[:, 1].tolist()})

@@ -23,6 +23,7 @@ from gns.events import (
     Events,
     displacement_range,
     events_from_series,
+    extent,
     fast_windows,
     moving_points,
     speeds,
@@ -137,6 +138,14 @@ class Oracle:
         boxes[-1][2, 1] += self.o.roi_front_pad * travel * 0.5  # z: heaving ahead of the front
         return [np.clip(b, self.bounds[:, :1], self.bounds[:, 1:]) for b in boxes]
 
+    def framed(self, phase: str) -> np.ndarray:
+        """[3, 2] box (m) a view of the phase frames: the column over the initiation; the
+        predicted final deposit (the last frame at the end of the runout) for the runout."""
+        if phase == "initiation":
+            return extent(self.positions, self.dt, *self.windows()["initiation"])
+        end = self.events.runout_end_s
+        return extent(self.positions, self.dt, end, end)
+
     def weight(self, t0: float, t1: float) -> float:
         """How fast the material moves in [t0, t1]: the integral of the speed scale raised to
         `speed_power` (2: kinetic energy, frames where motion is fastest)."""
@@ -173,10 +182,8 @@ class Oracle:
             # segment k renders f_k + 1 instants, its last one shared with segment k + 1
             share = _allocate([self.weight(a, b) for a, b in segs], max(budget - 1, len(segs)))
             windows_boxes = [boxes[f"{phase}_{k}"] for k in range(len(segs))]
-            every_box = [b for wb in windows_boxes for _, b in wb]
-            lo = np.min([b[:, 0] for b in every_box], axis=0)
-            hi = np.max([b[:, 1] for b in every_box], axis=0)
-            pad = o.margin * (hi - lo).max() * 0.5
+            lo, hi = self.framed(phase).T
+            pad = o.margin * (hi - lo).max() * 0.5 + self.spacing
             camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)
             out_views.append({
                 "name": name, "camera": camera, "width": o.width, "height": o.height,

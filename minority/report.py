@@ -30,6 +30,7 @@ from protocol.wire import MessageKind, decode
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 MAX_STEP_ROWS = 200  # per-step table rows printed (first and last half beyond that)
 MAX_LISTED = 20  # step numbers listed inline
+MAX_TICKS = 12  # step labels on a plot's x axis
 SERVER_COUNTS = ("steps_rendered", "steps_skipped", "timed_out", "evicted", "late", "duplicates",
                  "inbox_dropped", "rejected", "view_errors", "frames", "chunks")
 
@@ -211,7 +212,8 @@ def timing_table(log: RunLog) -> TimingTable:
 # --- bytes ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ByteSummary:
-    received: dict[int, int]  # rendered step -> chunk bytes the server received
+    received: dict[int, int]  # rendered step -> chunk bytes the server received (wire)
+    particles_received: int  # summed over the rendered steps
     full_dump: dict[int, int] | None  # rendered step -> bytes of a full dump; None: unknown
     total_particles: int | None
     particles_source: str  # where the total came from, or why it is unknown
@@ -271,7 +273,8 @@ def byte_summary(log: RunLog, table: TimingTable | None = None) -> ByteSummary:
         note = "no chunk in the log tells the bytes per particle"
     else:
         full = {s: n * per_step.get(s, common[0][0]) for s in received}
-    return ByteSummary(received, full, n, source, note, len(log.chunks),
+    return ByteSummary(received, sum(s.particles for s in table.steps), full, n, source, note,
+                       len(log.chunks),
                        sum(c.nbytes for c in log.chunks))
 
 
@@ -332,7 +335,7 @@ def markdown(log: RunLog, plot_paths: list[Path] = ()) -> str:
            + (f"; {log.rejected} rejected" if log.rejected else "")
            + (f"; {log.undecodable} undecodable" if log.undecodable else "") + ".", "",
            "## Time per in situ step", "",
-           f"Mean over {p.count} rendered steps ({len(t.per_view)} views). Receive and setup "
+           f"Mean over {p.count} rendered steps, views: {len(t.per_view)}. Receive and setup "
            "are once per step, render is the sum of the step's views.", "",
            "| | mean per in situ step (ms) | share |", "|---|---|---|"]
     out += [f"| {part} | {_ms(getattr(p, f'{part}_s'))} | {_pct(p.share(part))} |"
@@ -357,7 +360,13 @@ def markdown(log: RunLog, plot_paths: list[Path] = ()) -> str:
     if b.full_dump_total is not None:
         ratio = b.received_total / b.full_dump_total if b.full_dump_total else float("nan")
         out.append(f"- full dump at the same steps (every particle, positions + the same "
-                   f"fields): {_mb(b.full_dump_total)} MB; received / full dump = {_pct(ratio)}")
+                   f"fields, array bytes only): {_mb(b.full_dump_total)} MB; received / full "
+                   f"dump = {_pct(ratio)} (received bytes include the message headers)")
+    if b.total_particles:
+        dumped = b.total_particles * len(b.received)
+        out.append(f"- particles received: {b.particles_received} of {dumped} "
+                   f"({b.total_particles} x {len(b.received)} steps) = "
+                   f"{_pct(b.particles_received / dumped)}")
     else:
         out.append(f"- full dump: unknown ({b.full_dump_note})")
     out += [f"- chunks in the log: {b.chunks_logged}, {_mb(b.chunk_bytes_logged)} MB (every "
@@ -418,35 +427,36 @@ def plots(log: RunLog, out_dir: str | Path) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = log.path.stem if len(log.runs) == 1 else f"{log.path.stem}.{log.run}"
-    x = [s.step for s in t.steps]
-    gaps = [b2 - a for a, b2 in zip(x, x[1:], strict=False)]
-    width = 0.8 * (min(gaps) if gaps else 1)
+    steps = [s.step for s in t.steps]
+    x = range(len(steps))  # one slot per rendered step: scheduled steps are not evenly spaced
+    ticks = x[::max(1, len(steps) // MAX_TICKS)]
+
+    def axes(fig, ylabel: str, title: str):
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+        ax.set(xlabel="simulation step (rendered steps, in order)", ylabel=ylabel,
+               title=f"run {log.run}: {title}", xticks=ticks, xticklabels=[steps[i] for i in ticks])
+        return ax
 
     fig = Figure(figsize=(8, 4.5), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    ax = axes(fig, "time (ms)", "time per in situ step")
     bottom = [0.0] * len(x)
     for part, color in (("receive", "tab:blue"), ("setup", "tab:orange"), ("render", "tab:green")):
         ms = [getattr(s, f"{part}_s") * 1e3 for s in t.steps]
-        ax.bar(x, ms, width, bottom=bottom, label=part, color=color)
+        ax.bar(x, ms, 0.8, bottom=bottom, label=part, color=color)
         bottom = [a + m for a, m in zip(bottom, ms, strict=True)]
-    bad = [(s.step, s.total_s * 1e3) for s in t.steps if s.incomplete]
+    bad = [(i, s.total_s * 1e3) for i, s in enumerate(t.steps) if s.incomplete]
     if bad:
         ax.plot(*zip(*bad, strict=True), "rx", label="incomplete")
-    ax.set(xlabel="simulation step", ylabel="time (ms)",
-           title=f"run {log.run}: time per in situ step")
     ax.legend()
     timing_png = out_dir / f"{stem}.timing.png"
     fig.savefig(timing_png)
 
     fig = Figure(figsize=(8, 4.5), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    ax.bar(x, [b.received[s] / 1e6 for s in x], width, label="received", color="tab:blue")
+    ax = axes(fig, "MB (1e6 bytes)", "bytes per rendered step")
+    ax.bar(x, [b.received[s] / 1e6 for s in steps], 0.8, label="received", color="tab:blue")
     if b.full_dump is not None:
-        ax.plot(x, [b.full_dump[s] / 1e6 for s in x], "k.-", label="full dump")
-    ax.set(xlabel="simulation step", ylabel="MB (1e6 bytes)",
-           title=f"run {log.run}: bytes per rendered step")
+        ax.plot(x, [b.full_dump[s] / 1e6 for s in steps], "k.-", label="full dump")
     ax.legend()
     bytes_png = out_dir / f"{stem}.bytes.png"
     fig.savefig(bytes_png)

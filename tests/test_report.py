@@ -102,7 +102,7 @@ def test_bytes_against_a_full_dump(log_path):
     log = load_run(log_path)
     b = byte_summary(log)
     assert b.received == {20: 2_000_000, 40: 1_000_000, 60: 2_000_000}
-    assert b.received_total == 5_000_000
+    assert b.received_total == 5_000_000 and b.particles_received == 250
     assert b.total_particles == PARTICLES and "run_start" in b.particles_source
     assert b.full_dump == {s: PARTICLES * PARTICLE_BYTES for s in (20, 40, 60)}
     assert b.full_dump_total == 48_000_000
@@ -131,6 +131,7 @@ def test_markdown_holds_the_numbers(log_path):
                  "- particles in the run: 1000000 (run_start event of sim rank 0)",
                  "received at the 3 rendered steps: 5.000 MB",
                  "48.000 MB; received / full dump = 10.4 %",
+                 "- particles received: 250 of 3000000 (1000000 x 3 steps) = 0.0 %",
                  "- incomplete rendered steps: 1; step 40: 1 of 2 ranks",
                  "- steps with chunks in the log but not rendered: 1 (80)",
                  "steps_skipped 1, timed_out 1",

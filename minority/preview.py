@@ -1,19 +1,22 @@
 """`minority oracle preview SPEC ROLLOUT.h5`: the spec's views rendered on the predicted run,
 as one contact sheet PNG (a row per view, columns spread over the frames the view's
 schedule renders), so a person can judge cameras, windows, regions and colors before the
-full run. Rendered by the server's own ray tracer, regions of interest applied.
+full run. Rendered by the server's own code (render_server.frames.render_views): regions
+of interest and decimation applied as in the run.
 """
 
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from protocol.spec import Spec
-from render_server.render import Canvas, prepare, render
+from protocol.spec import ID_FIELD, Spec
+from render_server.frames import render_views
+from render_server.render import Canvas
 
 LABEL_PX = 14  # label strip height above each thumbnail
 
@@ -38,40 +41,43 @@ def rollout_field(name: str, positions: np.ndarray, k: int, frame_interval_s: fl
     return np.linalg.norm(v, axis=1) if name.endswith("_magnitude") else v
 
 
-def _subset(spec: Spec, view, k: int, time_s: np.ndarray, x: np.ndarray) -> np.ndarray:
-    regions = spec.view_regions(view, k, float(time_s[k]), float(time_s[k - 1]) if k else None)
-    if regions is None:
-        return np.arange(len(x))
-    keep = np.zeros(len(x), bool)
-    for r in regions:
-        keep |= np.all((x >= r.lo_m) & (x <= r.hi_m), axis=1)
-    return np.flatnonzero(keep)
+@dataclass
+class RolloutStep:
+    """A rollout frame as a step the server renders (render_server.frames.StepLike)."""
+
+    step: int
+    time_s: float
+    prev_time_s: float | None
+    positions: np.ndarray  # [n, 3] float32, m
+    fields: dict[str, np.ndarray]
+    spacing_m: float
 
 
 def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, spacing_m: float,
                   columns: int = 6, thumb_width: int = 256, log=sys.stderr) -> Image.Image:
     """positions [frames, n, 3] (m) -> the sheet: a row per view, up to `columns` frames."""
     time_s = np.arange(len(positions)) * frame_interval_s
-    radius = spec.sphere_radius_m or 0.5 * spacing_m
+    ids = np.arange(positions.shape[1])  # rollout rows: decimation picks id % k == 0
     rows = []
     for view in spec.views:
         frames = scheduled_frames(spec, view, time_s)
         picks = ([frames[int(round(i))] for i in np.linspace(0, len(frames) - 1, columns)]
                  if len(frames) > columns else frames)
         picks = list(dict.fromkeys(picks))
-        canvas = Canvas(view.width, view.height)
+        canvases: dict[str, Canvas] = {}
         thumbs = []
         for k in picks:
-            x = positions[k]
-            idx = _subset(spec, view, k, time_s, x)
-            if len(idx) == 0:
-                img = Image.new("RGB", (view.width, view.height), (128, 128, 128))
-            else:
-                field = rollout_field(view.field, positions, k, frame_interval_s)[idx]
-                scene = prepare(np.ascontiguousarray(x[idx], np.float32), radius)
-                img = Image.fromarray(np.array(render(scene, field, view, canvas=canvas)))
+            step = RolloutStep(k, float(time_s[k]), float(time_s[k - 1]) if k else None,
+                               np.ascontiguousarray(positions[k], np.float32),
+                               {view.field: rollout_field(view.field, positions, k,
+                                                          frame_interval_s),
+                                ID_FIELD: ids}, spacing_m)
+            (shown,) = render_views(step, spec, canvases, views=[view])
+            if shown.error:
+                raise ValueError(shown.error)
+            img = Image.fromarray(np.array(shown.image))
             h = round(thumb_width * view.height / view.width)
-            thumbs.append((k, len(idx), img.resize((thumb_width, h), Image.LANCZOS)))
+            thumbs.append((k, shown.particles, img.resize((thumb_width, h), Image.LANCZOS)))
         rows.append((view, len(frames), thumbs))
         print(f"preview: view {view.name}: {len(frames)} frames scheduled on the rollout, "
               f"{len(thumbs)} shown", file=log)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,6 +13,8 @@ import numpy as np
 from gns.export import write_hdf5, write_vtk_series
 from gns.rollout import initial_state, rollout
 from gns.train import load_checkpoint
+
+HistoryFn = Callable[[float, float, int], "np.ndarray | None"]
 
 
 @dataclass
@@ -40,24 +43,19 @@ class Prediction:
         return h5
 
 
-def model_frames(checkpoint: Path) -> tuple[float, float, int]:
-    """(particle spacing m, frame interval s, history frames C) of a checkpoint."""
-    model, ckpt = load_checkpoint(checkpoint, "cpu")
-    st = ckpt["stats"]
-    return float(st["particle_spacing_m"]), float(st["frame_interval_s"]), \
-        model.config.input_velocities
-
-
 def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
             device: str = "cpu", progress: bool = False, log=None,
-            history: np.ndarray | None = None) -> Prediction:
+            history: np.ndarray | HistoryFn | None = None) -> Prediction:
     """Seed `scene` at the model's spacing and roll it out for duration_s (default: the
-    scene's). `history` [C + 1, n, 3] (m): the first frames, e.g. from the MPM (None: C + 1
-    frames at rest). Raises RolloutError when the rollout diverges, ValueError on bad input."""
+    scene's). `history` [C + 1, n, 3] (m): the first frames, e.g. from the MPM, or a function
+    of (particle spacing m, frame interval s, C) giving them or None (None: C + 1 frames at
+    rest). Raises RolloutError when the rollout diverges, ValueError on bad input."""
     model, ckpt = load_checkpoint(checkpoint, device)
     st = ckpt["stats"]
     c = model.config.input_velocities
     init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"], c)
+    if callable(history):
+        history = history(float(st["particle_spacing_m"]), float(st["frame_interval_s"]), c)
     if history is not None:
         if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
             raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")

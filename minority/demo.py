@@ -75,19 +75,15 @@ def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
     import torch
 
     from gns.oracle import Oracle, OracleOptions
-    from gns.predict import model_frames, predict
     from gns.runtime import tune_allocator
     from minority.preview import preview
-    from minority.warmstart import mpm_history
+    from minority.warmstart import predict_scene
     from protocol.paraview import write_pvcc_for_views
 
     tune_allocator()
     torch.set_num_threads(o.threads)
-    spacing, dt, c = model_frames(o.checkpoint)
-    say(f"oracle: the first {c} frames from the MPM at {spacing} m, then the GNS "
-        f"({o.checkpoint.name})")
-    p = predict(o.checkpoint, scene, o.duration_s,
-                history=mpm_history(scene, spacing, dt, c))
+    say(f"oracle: the first frames from the MPM, then the GNS ({o.checkpoint.name})")
+    p = predict_scene(o.checkpoint, scene, o.duration_s)
     d = o.out / "oracle"
     rollout_h5 = p.write(d, vtk_every=4)
     pos, dt = p.positions, p.frame_interval_s

@@ -54,30 +54,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_rollout(args: argparse.Namespace) -> int:
     import torch
 
-    from gns.predict import predict
     from gns.rollout import RolloutError
     from gns.runtime import tune_allocator
+    from minority.warmstart import predict_scene
     from sim.scene import scene_path
 
     tune_allocator()
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        scene = scene_path(args.scene)
-        history = None
-        if args.start == "mpm":
-            from gns.predict import model_frames
-            from minority.warmstart import mpm_history
-
-            spacing, dt, c = model_frames(args.checkpoint)
-            try:
-                history = mpm_history(scene, spacing, dt, c)
-                print(f"rollout: the first {c} frames ({c * dt:.3f} s) from the MPM at "
-                      f"{spacing} m", file=sys.stderr)
-            except ValueError as exc:
-                print(f"rollout: warning: {exc}; starting from rest instead", file=sys.stderr)
-        p = predict(args.checkpoint, scene, args.duration, args.device, progress=True,
-                    log=sys.stderr, history=history)
+        p = predict_scene(args.checkpoint, scene_path(args.scene), args.duration, args.start,
+                          args.device, progress=True, log=sys.stderr)
         h5 = p.write(args.out, args.vtk_every)
     except (RolloutError, ValueError, OSError, KeyError) as exc:
         print(f"minority oracle rollout: error: {exc}", file=sys.stderr)

@@ -10,6 +10,7 @@ and lets the GNS go on from there, as its validation rollouts do.
 from __future__ import annotations
 
 import copy
+import sys
 import tomllib
 from pathlib import Path
 
@@ -45,3 +46,25 @@ def mpm_history(scene_toml: Path, spacing_m: float, frame_interval_s: float,
         return np.stack(out)
     raise ValueError(f"{scene_toml}: cannot seed the MPM at the model's spacing {spacing_m} m "
                      f"({'; '.join(errors)})")
+
+
+def predict_scene(checkpoint: Path, scene: Path, duration_s: float | None = None,
+                  start: str = "mpm", device: str = "cpu", progress: bool = False, log=None):
+    """gns.predict.predict from the MPM's first frames (start "mpm"; from rest, with a
+    warning, when the MPM cannot seed the scene at the model's spacing) or from rest."""
+    from gns.predict import predict
+
+    out = log if log is not None else sys.stderr
+
+    def from_mpm(spacing_m: float, frame_interval_s: float, frames: int) -> np.ndarray | None:
+        try:
+            history = mpm_history(scene, spacing_m, frame_interval_s, frames)
+        except ValueError as exc:
+            print(f"rollout: warning: {exc}; starting from rest instead", file=out)
+            return None
+        print(f"rollout: the first {frames} frames ({frames * frame_interval_s:.3f} s) from "
+              f"the MPM at {spacing_m} m", file=out)
+        return history
+
+    return predict(checkpoint, scene, duration_s, device, progress, log,
+                   history=from_mpm if start == "mpm" else None)

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from gns.predict import model_frames, predict
+from gns.predict import predict
 from gns.rollout import initial_state
+from gns.train import load_checkpoint
 from minority.demo import CHECKPOINT, DemoOptions, demo_column
 from minority.warmstart import mpm_history
 
@@ -12,7 +13,9 @@ from minority.warmstart import mpm_history
 def test_mpm_history_starts_on_the_gns_lattice_and_falls(tmp_path):
     scene = tmp_path / "column.toml"
     scene.write_text(demo_column(DemoOptions(cell_size_m=0.032, duration_s=0.1)))
-    spacing, dt, c = model_frames(CHECKPOINT)
+    model, ckpt = load_checkpoint(CHECKPOINT, "cpu")
+    spacing, dt = ckpt["stats"]["particle_spacing_m"], ckpt["stats"]["frame_interval_s"]
+    c = model.config.input_velocities
     h = mpm_history(scene, spacing, dt, c)
     rest = initial_state(scene, spacing, dt, c).positions[0]
     assert h.shape == (c + 1, len(rest), 3)
@@ -32,3 +35,17 @@ def test_mpm_history_refuses_a_domain_it_cannot_seed(tmp_path):
     scene.write_text(text.replace(line, "size_m = [0.81, 0.16, 0.416]"))
     with pytest.raises(ValueError, match="cannot seed the MPM at the model's spacing"):
         mpm_history(scene, 0.016, 0.005, 5)
+
+
+def test_predict_scene_falls_back_to_rest_when_the_mpm_cannot_seed(tmp_path, capsys):
+    from minority.warmstart import predict_scene
+
+    scene = tmp_path / "odd.toml"
+    text = demo_column(DemoOptions(cell_size_m=0.032))
+    line = next(t for t in text.splitlines() if t.startswith("size_m"))
+    scene.write_text(text.replace(line, "size_m = [0.81, 0.16, 0.416]"))
+    p = predict_scene(CHECKPOINT, scene, 0.02)
+    assert "starting from rest instead" in capsys.readouterr().err
+    assert p.positions.shape[0] == 5  # t = 0 plus 4 frames of 5 ms, frame 0 at rest
+    rest = initial_state(scene, p.spacing_m, p.frame_interval_s, 5).positions[0]
+    np.testing.assert_allclose(p.positions[0], rest, atol=1e-6)

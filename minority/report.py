@@ -76,7 +76,8 @@ class _Acc:  # one run's records while reading
     undecodable: int = 0
 
 
-def _chunk_info(data: bytes) -> ChunkInfo:
+def chunk_info(data: bytes) -> ChunkInfo:
+    """A logged chunk's header numbers, read without a pass over its particle data."""
     env = decode(data, ChunkMeta, expect=MessageKind.CHUNK)  # header and sizes, no data pass
     m = env.meta
     per_particle = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in env.arrays.values())
@@ -106,7 +107,7 @@ def load_run(path: str | Path, run: str | None = None) -> RunLog:
         acc, kind = accs[parts[1]], parts[2]
         try:
             if kind == "chunk":
-                acc.chunks.append(_chunk_info(rec.data))
+                acc.chunks.append(chunk_info(rec.data))
             elif kind == "frame":
                 acc.frames[parts[3] if len(parts) > 3 else "?"] += 1
             elif kind in ("timing", "event", "spec"):

@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
+from minority.report import chunk_info
 from protocol.log import read_log
-from protocol.messages import SPEED_EDGES_M_S, Chunk, Frame, Stats
+from protocol.messages import SPEED_EDGES_M_S, Frame, Stats
 from protocol.spec import Spec
 
 EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
@@ -77,19 +78,19 @@ def load_run(path: str | Path) -> RunRecord:
     chunk_bytes, chunk_steps = 0, {}
     for rec in read_log(path):
         kind = rec.topic.split("/")[2] if rec.topic.count("/") >= 2 else ""
-        if kind not in ("stats", "frame", "chunk"):
+        if kind == "chunk":  # header numbers only: no pass over the particle data
+            c = chunk_info(rec.data)
+            chunk_bytes += c.nbytes
+            if c.count:
+                chunk_steps.setdefault(c.step, (c.time_s, c.particle_bytes))
+            continue
+        if kind not in ("stats", "frame"):
             continue
         msg = rec.decode()
         if isinstance(msg, Stats):
             by_step[msg.step].append(msg)
         elif isinstance(msg, Frame):
             frames[msg.view].append(msg.time_s)
-        elif isinstance(msg, Chunk):
-            chunk_bytes += len(rec.data)
-            per_particle = sum(a.dtype.itemsize * (a.size // max(len(a), 1))
-                               for a in msg.fields.values() if a.ndim)
-            if msg.count:
-                chunk_steps.setdefault(msg.step, (msg.time_s, per_particle))
     if not by_step:
         raise ScoreError(f"{path}: no stats records (was the run published with stats on?)")
     ranks = max(len({s.rank for s in v}) for v in by_step.values())

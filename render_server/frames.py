@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from protocol.errors import SpecError
-from protocol.spec import ID_FIELD, Region, Spec, View
+from protocol.spec import ID_FIELD, Region, Spec, View, inside_mask
 from render_server.colormap import view_colormap
 from render_server.render import Canvas, Scene, encode_png, prepare, render
 
@@ -58,15 +58,6 @@ class _Subset:
     setup_s: float
 
 
-def inside(positions: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
-    """[n] bool: which positions [n, 3] (m) lie inside any of the boxes (bounds included)."""
-    keep = np.zeros(len(positions), dtype=bool)
-    for r in regions:
-        keep |= np.all((positions >= np.asarray(r.lo_m)) & (positions <= np.asarray(r.hi_m)),
-                       axis=1)
-    return keep
-
-
 def subset_key(spec: Spec, view: View, step: StepLike) -> SubsetKey:
     """The particle subset `view` shows at `step` (the view must be due)."""
     regions = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
@@ -81,7 +72,7 @@ def select(step: StepLike, key: SubsetKey) -> np.ndarray | None:
         return None
     keep = np.ones(len(step.positions), dtype=bool)
     if regions is not None:
-        keep &= inside(step.positions, regions)
+        keep &= inside_mask(step.positions, regions)
     if stride > 1:
         keep &= step.fields[ID_FIELD].reshape(-1) % stride == 0
     return np.flatnonzero(keep)

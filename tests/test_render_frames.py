@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import render_server.frames as frames
-from protocol.spec import InlineColormap, Spec
+from protocol.spec import InlineColormap, Spec, inside_mask
 from render_server.assemble import AssembledStep
 from render_server.colormap import preset, view_colormap
 from render_server.render import prepare, render
@@ -59,8 +59,8 @@ def test_each_view_shows_its_regions_and_subsets_are_prepared_once(monkeypatch):
                         or prepare(pos, *a, **k))
     got = by_name(frames.render_views(step, spec, {}))
     assert len(calls) == 3  # left, left + corner, everything
-    left = frames.inside(step.positions, (spec.region("left"),))
-    two = left | frames.inside(step.positions, (spec.region("corner"),))
+    left = inside_mask(step.positions, (spec.region("left"),))
+    two = left | inside_mask(step.positions, (spec.region("corner"),))
     assert 0 < left.sum() < two.sum() < len(step.positions)
     for name, rows in [("left", left), ("left-too", left), ("two", two),
                        ("all", np.ones(len(left), bool))]:

@@ -76,6 +76,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, default=17502, help="loopback TCP port")
     parser.add_argument("--sizes", type=int, nargs="*", default=list(SIZES))
+    parser.add_argument("--shadows", action="store_true",
+                        help="shadow rays on: setup_s then includes the per-brick grids")
     parser.add_argument("--sender", nargs=4, metavar=("ENDPOINT", "N", "FIRST", "STEPS"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -86,7 +88,8 @@ def main() -> None:
     session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)
     timing = Inbox(session, keys.timing(RUN), capacity=1024)
     with tempfile.TemporaryDirectory() as tmp:
-        server = RenderServer(session, ServerOptions(spec(), Path(tmp), None, write_png=False))
+        server = RenderServer(session, ServerOptions(spec(), Path(tmp), None, shadows=args.shadows,
+                                                     write_png=False))
         first = 0  # steps keep increasing across sizes (the server drops older steps)
         for n in args.sizes:
             steps = SIZES.get(n, 5)
@@ -104,7 +107,7 @@ def main() -> None:
             med = {k: statistics.median(getattr(r, k) for r in rows)
                    for k in ("receive_s", "setup_s", "render_s")}
             print(json.dumps({"bench": "render", "particles": n, "width": WIDTH, "height": HEIGHT,
-                              **{k: round(v, 5) for k, v in med.items()},
+                              "shadows": args.shadows, **{k: round(v, 5) for k, v in med.items()},
                               "total_s": round(sum(med.values()), 5)}), flush=True)
         server.close()
     session.close()

@@ -78,7 +78,9 @@ def worker(args: argparse.Namespace) -> None:
             "chunks_dropped": p["dropped"], "bytes_sent": p["bytes_sent"],
             "rebalances": s.rebalances, "migrated": s.migrated,
             "rank_particles": s.rank_particles,
-            "rank_compute_cpu_s": [round(c, 3) for c in s.rank_compute_cpu_s]}), flush=True)
+            "rank_compute_cpu_s": [round(c, 3) for c in s.rank_compute_cpu_s],
+            "rank_phases_s": [{k: round(v, 3) for k, v in ph.items()} for ph in s.rank_phases_s]}),
+              flush=True)
 
 
 def main() -> None:

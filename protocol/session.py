@@ -5,6 +5,8 @@ Embedded default (one machine, no router to install): the render server is a pee
 listens on tcp/127.0.0.1:7447; ranks, recorders and replays are clients that connect to
 it. Multicast scouting is off. Shared memory is on, with an implicit-SHM pool large enough
 for a 1M-particle chunk, so large puts between processes on one host skip the TCP copy.
+zenoh writes the whole pool when a session first puts through it (about 3 ms of CPU per
+MiB here), so a sender that knows its largest message sizes the pool with `shm_pool_for`.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ import zenoh
 from protocol.wire import stamp_sent
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-# 1M particles x (positions [n,3] f4 + 4 scalar f4 fields) = 28 MB; room for several in flight.
-SHM_POOL_BYTES = 256 * 1024 * 1024
+# 1M particles x (positions [n,3] f4 + 4 scalar f4 fields) = 28 MB; room for two in flight.
+SHM_POOL_BYTES = 64 * 1024 * 1024
+SHM_POOL_MIN_BYTES = 8 * 1024 * 1024
+SHM_POOL_MAX_BYTES = 512 * 1024 * 1024
 SHM_THRESHOLD_BYTES = 3072  # messages above this size go through shared memory on one host
 # Transmission queue: batches per priority (zenoh default 2). Data streams get deeper queues so
 # a burst of chunks from one step does not stall the sender; bounded, so memory stays bounded.
@@ -46,6 +50,13 @@ class NetworkOptions:
     listen: list[str] = field(default_factory=list)
     config: Path | None = None
     connect_timeout_s: float = 0.0  # clients: keep retrying for this long at start (0 = once)
+    shm_pool_bytes: int = SHM_POOL_BYTES  # implicit shared-memory pool (embedded config only)
+
+
+def shm_pool_for(message_bytes: int) -> int:
+    """A pool for two messages of at most `message_bytes` in flight, within
+    [SHM_POOL_MIN_BYTES, SHM_POOL_MAX_BYTES]; a message that does not fit goes over TCP."""
+    return int(min(max(2 * message_bytes, SHM_POOL_MIN_BYTES), SHM_POOL_MAX_BYTES))
 
 
 def add_network_args(parser: argparse.ArgumentParser) -> None:
@@ -78,7 +89,7 @@ def make_config(opts: NetworkOptions, role: Role) -> zenoh.Config:
         _put(cfg, "scouting/gossip/enabled", False)
         _put(cfg, "transport/shared_memory/enabled", True)
         _put(cfg, "transport/shared_memory/transport_optimization",
-             {"enabled": True, "pool_size": SHM_POOL_BYTES,
+             {"enabled": True, "pool_size": int(opts.shm_pool_bytes),
               "message_size_threshold": SHM_THRESHOLD_BYTES})
         _put(cfg, "transport/link/tx/queue/size", TX_QUEUE_BATCHES)
         _put(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop", DROP_WAIT_US)

@@ -21,7 +21,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -104,6 +104,7 @@ class RankRunSummary:
     publish: dict = field(default_factory=dict)  # PublishStats summed over ranks
     rank_particles: list[int] = field(default_factory=list)  # per rank, at the end
     rank_compute_cpu_s: list[float] = field(default_factory=list)  # per rank: PhaseTimes
+    rank_phases_s: list[dict] = field(default_factory=list)  # per rank: wall s per phase
 
 
 def _default_threads(comm) -> int:
@@ -186,12 +187,17 @@ def _start_publishing(config, scene, sim, comm, log):
     Returns (publisher or None, run, spec)."""
     if config.publish is None:
         return None, config.run, None
+    from protocol.session import shm_pool_for
     from protocol.spec import Spec
-    from sim.publish import RankPublisher
+    from sim.publish import SIM_FIELDS, RankPublisher, particle_bytes
 
     rank, ranks = comm.Get_rank(), comm.Get_size()
     bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))
-    pub = RankPublisher(rank, ranks, scene.particle_spacing_m, bounds, config.publish, log)
+    # shared memory for the largest chunk this rank could send: every particle, every field
+    largest = sim.n_total * particle_bytes(SIM_FIELDS)
+    options = replace(config.publish, network=replace(config.publish.network,
+                                                      shm_pool_bytes=shm_pool_for(largest)))
+    pub = RankPublisher(rank, ranks, scene.particle_spacing_m, bounds, options, log)
     pub.connect(config.wait_s)
     run = config.run or scene.name
     try:
@@ -310,7 +316,8 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         migrated=sim.total_count(sim.migrated), run=run,
         spec_version=spec.version if spec is not None else None, publish=pub_total,
         rank_particles=comm.allgather(sim.particles.n),
-        rank_compute_cpu_s=comm.allgather(sim.times.compute_cpu))
+        rank_compute_cpu_s=comm.allgather(sim.times.compute_cpu),
+        rank_phases_s=comm.allgather(detail["phases_s"]))
     if pub_total:
         say(f"published: {pub_total['sent']} of {pub_total['scheduled']} scheduled chunks sent, "
             f"{pub_total['dropped']} dropped, {pub_total['bytes_sent'] / 1e6:.3g} MB, "

@@ -5,7 +5,6 @@ import queue
 from pathlib import Path
 
 import numpy as np
-
 import pytest
 import zenoh
 from conftest import free_port

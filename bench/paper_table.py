@@ -49,20 +49,21 @@ def spec_for(scene: Path):
         "schedule": [{"every_steps": EVERY}]}]})
 
 
-def run_sim(scene: Path, steps: int, publish) -> float:
+def run_sim(scene: Path, steps: int, publish) -> tuple[float, dict]:
     from sim.ranks import RankRunConfig, run_ranks
 
     config = RankRunConfig(scene_path=scene, out=None, threads=1, progress=False,
                            publish=publish, run=RUN, wait_s=30.0 if publish else 0.0,
                            max_steps=steps)
     summary = run_ranks(config, stream=open(os.devnull, "w"))  # noqa: SIM115
-    return summary.loop_wall_s
+    return summary.loop_wall_s, summary.publish
 
 
 def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
-                      work: Path) -> float:
+                      work: Path) -> tuple[float, dict]:
     """Start a server (pinned to its core), run the sim publishing to it, wait for the
-    server to render the last step and exit; returns the sim's stepping wall time (s)."""
+    server to render the last step and exit; returns the sim's stepping wall time (s) and
+    its publishing summary."""
     from minority.demo import free_port
     from protocol.session import NetworkOptions
     from sim.publish import PublishOptions
@@ -75,13 +76,13 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
         preexec_fn=lambda: os.sched_setaffinity(0, {SERVER_CORE}),
         env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
     try:
-        wall = run_sim(scene, steps, PublishOptions(
+        result = run_sim(scene, steps, PublishOptions(
             network=NetworkOptions(connect=[endpoint]), stats_every_s=0.005))
         server.wait(timeout=600)
     finally:
         if server.poll() is None:
             server.kill()
-    return wall
+    return result
 
 
 def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
@@ -91,11 +92,13 @@ def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
     scene = builtin_scene_path(scene_name)
     spec_path = work / f"{scene_name}.json"
     spec_for(scene).save(spec_path)
-    quiet, loud = [], []
+    quiet, loud, published = [], [], []
     for k in range(repeats):  # alternated, so that drift hits both alike
-        quiet.append(run_sim(scene, steps, None))
-        loud.append(serve_and_publish(scene, steps, spec_path, work / f"{scene_name}.{k}.mcap",
-                                      work))
+        quiet.append(run_sim(scene, steps, None)[0])
+        wall, pub = serve_and_publish(scene, steps, spec_path, work / f"{scene_name}.{k}.mcap",
+                                      work)
+        loud.append(wall)
+        published.append(pub)
     steps_timed = [s for k in range(repeats)
                    for s in timing_table(load_run(work / f"{scene_name}.{k}.mcap")).steps]
     mean = {p: float(np.mean([getattr(s, f"{p}_s") for s in steps_timed]))
@@ -107,7 +110,11 @@ def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
             "total_s": round(sum(mean.values()), 4),
             "sim_step_s": round(min(quiet) / steps, 5),
             "viz_overhead": round(min(loud) / min(quiet) - 1.0, 4),
-            "viz_overhead_median": round(float(np.median(loud) / np.median(quiet)) - 1.0, 4)}
+            "viz_overhead_median": round(float(np.median(loud) / np.median(quiet)) - 1.0, 4),
+            # the sim thread's own share of publishing (cull, encode, queue; stats), median
+            "prepare_s": round(float(np.median([p["prepare_s"] for p in published])), 4),
+            "stats_s": round(float(np.median([p["stats_s"] for p in published])), 4),
+            "sent_mb": round(float(np.median([p["bytes_sent"] for p in published])) / 1e6, 1)}
 
 
 def main() -> None:

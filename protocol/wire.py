@@ -71,6 +71,7 @@ class MessageKind(IntEnum):
     STATS = 6
 
 
+_KINDS = {int(k): k for k in MessageKind}
 WireDtype = Literal["<f4", "<f8", "<i4", "<i8", "<u4", "<u8", "<i2", "<u2", "|i1", "|u1"]
 MetaT = TypeVar("MetaT")
 
@@ -202,10 +203,9 @@ def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
         raise ProtocolError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
     if version != FORMAT_VERSION:
         raise ProtocolError(f"format version {version} is not supported (this build reads {FORMAT_VERSION})")
-    try:
-        kind = MessageKind(kind)
-    except ValueError:
-        raise ProtocolError(f"unknown message kind {kind}") from None
+    kind = _KINDS.get(kind)  # a dict lookup: IntEnum's constructor is a slow Python call
+    if kind is None:
+        raise ProtocolError(f"unknown message kind {PREFIX.unpack_from(view, 0)[2]}")
     if res1 or res2:
         raise ProtocolError("reserved prefix fields are not zero")
     if total != len(view):
@@ -250,7 +250,8 @@ def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) ->
             raise ProtocolError(f"array {name!r} ({nbytes} bytes at {start}) runs past the "
                                 f"end of the {total}-byte payload")
         if nbytes:
-            arrays[name] = np.frombuffer(view, dtype=dt, count=count, offset=start).reshape(shape)
+            a = np.frombuffer(view, dtype=dt, count=count, offset=start)
+            arrays[name] = a if len(shape) == 1 else a.reshape(shape)
             if dt.kind == "f":
                 float_lo, float_hi = min(float_lo, start), start + nbytes
         else:

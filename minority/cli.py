@@ -80,7 +80,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import zenoh
 
     from protocol.errors import SpecError
-    from protocol.session import Role, open_session, options_from_args
+    from protocol.session import Role, open_session, options_from_args, shm_pool_for
     from protocol.spec import Spec
     from render_server.daemon import RenderServer, ServerOptions
 
@@ -92,8 +92,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
     if record is not None:
         record.parent.mkdir(parents=True, exist_ok=True)
+    opts = options_from_args(args)
+    # the server's own large puts are frames: a pool for the largest raw image
+    opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for v in spec.views), default=0)
+                                       + 65536)
     try:
-        session = open_session(options_from_args(args), Role.SERVER)
+        session = open_session(opts, Role.SERVER)
     except zenoh.ZError as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 1

@@ -203,16 +203,16 @@ def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
         raise ProtocolError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
     if version != FORMAT_VERSION:
         raise ProtocolError(f"format version {version} is not supported (this build reads {FORMAT_VERSION})")
-    kind = _KINDS.get(kind)  # a dict lookup: IntEnum's constructor is a slow Python call
-    if kind is None:
-        raise ProtocolError(f"unknown message kind {PREFIX.unpack_from(view, 0)[2]}")
+    message_kind = _KINDS.get(kind)  # a dict lookup: IntEnum's constructor is a slow call
+    if message_kind is None:
+        raise ProtocolError(f"unknown message kind {kind}")
     if res1 or res2:
         raise ProtocolError("reserved prefix fields are not zero")
     if total != len(view):
         raise ProtocolError(f"declared length {total} bytes but {len(view)} bytes received")
     if hlen > MAX_HEADER_BYTES or PREFIX_SIZE + hlen > len(view):
         raise ProtocolError(f"header length {hlen} does not fit in {len(view)} bytes")
-    return kind, hlen, total, sent_ns
+    return message_kind, hlen, total, sent_ns
 
 
 def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) -> Envelope:

@@ -103,8 +103,8 @@ class RankRunSummary:
     spec_version: int | None
     publish: dict = field(default_factory=dict)  # PublishStats summed over ranks
     rank_particles: list[int] = field(default_factory=list)  # per rank, at the end
-    rank_compute_cpu_s: list[float] = field(default_factory=list)  # per rank: PhaseTimes
-    rank_phases_s: list[dict] = field(default_factory=list)  # per rank: wall s per phase
+    rank_compute_cpu_s: list[float] = field(default_factory=list)  # per rank: CPU s, MPM phases
+    rank_phases_s: list[dict] = field(default_factory=list)  # per rank: s per phase (PhaseTimes)
 
 
 def _default_threads(comm) -> int:
@@ -306,6 +306,7 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
                         pub_total[key] = pub_total.get(key, 0) + value
         pub_total["missing_fields"] = sorted({f for p in parts for f in p["missing_fields"]})
     n_total = sim.n_total
+    phases = comm.allgather(detail["phases_s"])
     summary = RankRunSummary(
         out_path=config.out, particles=n_total, ranks=ranks, steps=sim.step_count,
         frames=written, sim_time_s=sim.time_s, wall_s=time.perf_counter() - wall0,
@@ -316,8 +317,7 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         migrated=sim.total_count(sim.migrated), run=run,
         spec_version=spec.version if spec is not None else None, publish=pub_total,
         rank_particles=comm.allgather(sim.particles.n),
-        rank_compute_cpu_s=comm.allgather(sim.times.compute_cpu),
-        rank_phases_s=comm.allgather(detail["phases_s"]))
+        rank_compute_cpu_s=[p["compute_cpu"] for p in phases], rank_phases_s=phases)
     if pub_total:
         say(f"published: {pub_total['sent']} of {pub_total['scheduled']} scheduled chunks sent, "
             f"{pub_total['dropped']} dropped, {pub_total['bytes_sent'] / 1e6:.3g} MB, "

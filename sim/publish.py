@@ -111,11 +111,6 @@ def particle_bytes(fields) -> int:
                                 for f in fields if f in SIM_FIELDS)
 
 
-def inside(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
-    """Indices of the particles x [n, 3] (m) inside any of the boxes (bounds included)."""
-    return np.flatnonzero(inside_mask(x, regions))
-
-
 def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
     """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
     field the simulation knows (unknown names are skipped; the caller reports them), of
@@ -132,12 +127,13 @@ def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
 
     x = take(ps.x)
     out = {"positions": x.astype(np.float32)}
+    fields = set(request.fields)
+    d = x - take(ps.x0) if fields & {"displacement", "displacement_magnitude"} else None
+    v = take(ps.v) if fields & {"velocity", "velocity_magnitude"} else None
     for name in request.fields:
         if name in ("displacement", "displacement_magnitude"):
-            d = x - take(ps.x0)
             out[name] = (d if name == "displacement" else np.linalg.norm(d, axis=1)).astype(np.float32)
         elif name in ("velocity", "velocity_magnitude"):
-            v = take(ps.v)
             out[name] = (v if name == "velocity" else np.linalg.norm(v, axis=1)).astype(np.float32)
         elif name == "pressure":
             tau = take(ps.tau)

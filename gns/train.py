@@ -109,8 +109,17 @@ def _batch(windows, device):
 
 
 def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: TrainConfig, *,
-          resume: str | Path | None = None, device: str | None = None, log=sys.stderr) -> Path:
-    """Train; write out (the latest checkpoint) and out with suffix .best.pt (best val)."""
+          resume: str | Path | None = None, init: str | Path | None = None,
+          device: str | None = None, log=sys.stderr) -> Path:
+    """Train; write out (the latest checkpoint) and out with suffix .best.pt (best val).
+
+    resume: continue a run (weights, optimizer, step, history). init: start from a
+    checkpoint's weights, model config and statistics, with a fresh optimizer and schedule
+    (fine-tuning, e.g. with another noise level); the statistics stay the checkpoint's so
+    that the weights keep their meaning.
+    """
+    if resume and init:
+        raise ValueError("give --resume or --init, not both")
     from gns.rollout import rollout_error
     from gns.runtime import tune_allocator
 
@@ -119,18 +128,23 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     meta = load_metadata(dataset)
     train_trajs, val_trajs = load_split(dataset, "train"), load_split(dataset, "valid")
     step, history, ckpt = 0, [], {}
-    if resume:
-        model, ckpt = load_checkpoint(resume, device)  # its model config and statistics win
-        step, history = int(ckpt["step"]), list(ckpt.get("history", []))
+    if resume or init:
+        model, ckpt = load_checkpoint(resume or init, device)  # its config and statistics win
         stats, model_config = ckpt["stats"], model.config
+    if resume:
+        step, history = int(ckpt["step"]), list(ckpt.get("history", []))
+    elif init:
+        history = [{"init": str(init), "init_step": int(ckpt["step"])}]
+        ckpt = {}  # fresh optimizer
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if "optimizer" in ckpt:
         opt.load_state_dict(ckpt["optimizer"])
-    if resume:
-        print(f"train: resumed {resume} at step {step}", file=log, flush=True)
+    if resume or init:
+        print(f"train: {'resumed' if resume else 'initialized from'} {resume or init} "
+              f"at step {step}", file=log, flush=True)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed + step)

@@ -43,7 +43,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      val_every=args.val_every, val_frames=args.val_frames,
                      ckpt_every=args.ckpt_every, seed=args.seed)
     try:
-        out = train(args.dataset, args.out, mc, tc, resume=args.resume, device=args.device)
+        out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
+                    device=args.device)
     except (DatasetError, OSError, ValueError) as exc:
         print(f"minority oracle train: error: {exc}", file=sys.stderr)
         return 1
@@ -194,6 +195,9 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--out", type=Path, default=Path("data/gns.pt"), help="checkpoint file")
     q.add_argument("--resume", type=Path, help="continue from this checkpoint (its model "
                                                "config and statistics win)")
+    q.add_argument("--init", type=Path, help="fine-tune: start from this checkpoint's weights, "
+                                             "model config and statistics with a fresh "
+                                             "optimizer and learning-rate schedule")
     q.add_argument("--latent", type=int, default=128, help="latent size (default 128)")
     q.add_argument("--mlp-layers", type=int, default=2, help="hidden layers per MLP (default 2)")
     q.add_argument("--message-passing", type=int, default=10, metavar="M",

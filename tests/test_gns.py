@@ -288,3 +288,24 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
     p = subprocess.run(run + ["rollout", str(tmp_path / "missing.pt"), "tiny"],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "missing.pt" in p.stderr
+
+
+def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):
+    path, _, _ = dataset
+    base, tuned = tmp_path / "base.pt", tmp_path / "tuned.pt"
+    tc = TrainConfig(steps=4, batch=2, val_every=100, val_frames=5, ckpt_every=4)
+    train(path, base, ModelConfig(latent=16, message_passing=2), tc, device="cpu")
+    _, start = load_checkpoint(base)
+    # the model config given here is ignored: the checkpoint's wins
+    train(path, tuned, ModelConfig(latent=8, message_passing=1),
+          replace(tc, steps=3, noise_std=1e-4), init=base, device="cpu")
+    model, ckpt = load_checkpoint(tuned)
+    assert ckpt["step"] == 3 and ckpt["model_config"] == start["model_config"]
+    assert ckpt["stats"] == start["stats"]
+    assert ckpt["history"][0] == {"init": str(base), "init_step": 4}
+    assert ckpt["train_config"]["noise_std"] == 1e-4
+    changed = [not torch.equal(ckpt["state_dict"][k], start["state_dict"][k])
+               for k in start["state_dict"]]
+    assert any(changed)
+    with pytest.raises(ValueError, match="not both"):
+        train(path, tuned, ModelConfig(), tc, resume=base, init=base, device="cpu")

@@ -72,6 +72,7 @@ class MessageKind(IntEnum):
 
 
 _KINDS = {int(k): k for k in MessageKind}
+_U1, _F4 = np.dtype("u1"), np.dtype("<f4")
 WireDtype = Literal["<f4", "<f8", "<i4", "<i8", "<u4", "<u8", "<i2", "<u2", "|i1", "|u1"]
 MetaT = TypeVar("MetaT")
 
@@ -110,7 +111,7 @@ class Envelope:
     sent_ns: int
     meta: dict
     arrays: dict[str, np.ndarray]
-    payload: memoryview | None = None
+    payload: np.ndarray | None = None  # the whole payload as uint8 (a view, no copy)
     float_span: tuple[int, int] = (0, 0)  # byte range covering every float array
 
     def check_finite(self) -> None:
@@ -124,9 +125,9 @@ class Envelope:
         lo, hi = self.float_span
         if hi <= lo:
             return
-        span = np.frombuffer(self.payload, dtype="<f4", count=(hi - lo) // 4, offset=lo)
+        span = self.payload[lo:hi].view(_F4)
         with np.errstate(over="ignore", invalid="ignore"):
-            if math.isfinite(np.dot(span, span)):
+            if math.isfinite(span.dot(span)):
                 return
         for name, array in self.arrays.items():
             if array.dtype.kind == "f" and array.size:
@@ -192,10 +193,19 @@ def stamp_sent(payload: bytearray, sent_ns: int | None = None) -> None:
 
 def peek_kind(payload) -> MessageKind:
     """The message kind of a payload after checking only its prefix."""
-    return _prefix(memoryview(payload))[0]
+    return _prefix(_bytes_view(payload))[0]
 
 
-def _prefix(view: memoryview) -> tuple[MessageKind, int, int, int]:
+def _bytes_view(payload) -> np.ndarray:
+    """The payload as a read-only uint8 array (no copy): one buffer acquisition, then every
+    array is a slice of it (cheaper than one np.frombuffer per array)."""
+    try:
+        return np.frombuffer(payload, dtype=_U1)
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError(f"payload is not a bytes-like object: {exc}") from None
+
+
+def _prefix(view: np.ndarray) -> tuple[MessageKind, int, int, int]:
     if len(view) < PREFIX_SIZE:
         raise ProtocolError(f"payload is {len(view)} bytes, shorter than the {PREFIX_SIZE}-byte prefix")
     magic, version, kind, res1, hlen, res2, total, sent_ns = PREFIX.unpack_from(view, 0)
@@ -223,15 +233,12 @@ def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) ->
     Raises ProtocolError naming the problem; nothing large is allocated before the declared
     sizes have been checked against the bytes received.
     """
-    try:
-        view = memoryview(payload).cast("B")
-    except TypeError as exc:
-        raise ProtocolError(f"payload is not a bytes-like object: {exc}") from None
+    view = _bytes_view(payload)
     kind, hlen, total, sent_ns = _prefix(view)
     if expect is not None and kind != expect:
         raise ProtocolError(f"expected a {expect.name.lower()} message, got {kind.name.lower()}")
     try:
-        header = _header_decoder(meta_type).decode(view[PREFIX_SIZE:PREFIX_SIZE + hlen])
+        header = _header_decoder(meta_type).decode(memoryview(view[PREFIX_SIZE:PREFIX_SIZE + hlen]))
     except msgspec.ValidationError as exc:
         raise ProtocolError(f"{kind.name.lower()} header: {exc}") from None
     except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
@@ -250,7 +257,7 @@ def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) ->
             raise ProtocolError(f"array {name!r} ({nbytes} bytes at {start}) runs past the "
                                 f"end of the {total}-byte payload")
         if nbytes:
-            a = np.frombuffer(view, dtype=dt, count=count, offset=start)
+            a = view[start:start + nbytes].view(dt)
             arrays[name] = a if len(shape) == 1 else a.reshape(shape)
             if dt.kind == "f":
                 float_lo, float_hi = min(float_lo, start), start + nbytes

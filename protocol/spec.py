@@ -125,6 +125,8 @@ class DataRequest:
     fields: tuple[str, ...]  # in first-use order
     regions: tuple[Region, ...] | None
     decimate: int = 1
+    # when every due view has occlusion_cull: send only particles visible in one of them
+    visible_in: tuple[View, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,9 @@ class Spec:
         boxes = [self.view_regions(v, step, time_s, prev_time_s) for v in views]
         regions = (None if any(b is None for b in boxes)
                    else tuple(dict.fromkeys(r for b in boxes for r in b)))
-        return DataRequest(tuple(v.name for v in views), tuple(fields), regions, stride)
+        visible_in = tuple(views) if all(v.occlusion_cull for v in views) else ()
+        return DataRequest(tuple(v.name for v in views), tuple(fields), regions, stride,
+                           visible_in)
 
     def active_regions(self, time_s: float) -> tuple[Region, ...] | None:
         """The union of the regions of every window open at `time_s` (cadence aside):

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from protocol import check
 from protocol.errors import SpecError
 
@@ -54,6 +56,18 @@ class Camera:
         if math.hypot(*cross) <= 1e-12 * math.hypot(*direction) * max(math.hypot(*cam.view_up), 1e-300):
             raise SpecError(f"{where}.view_up: parallel to the view direction (or zero)")
         return cam
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """The camera's orthonormal frame in world coordinates, VTK's convention: position
+        [3] (m), right [3] (image +x), up [3] (the view up orthogonalized, image +y), forward
+        [3] (toward the focal point), and the distance to the focal point (m)."""
+        position = np.asarray(self.position, dtype=np.float64)
+        forward = np.asarray(self.focal_point, dtype=np.float64) - position
+        distance = float(np.linalg.norm(forward))
+        forward /= distance
+        right = np.cross(forward, np.asarray(self.view_up, dtype=np.float64))
+        right /= np.linalg.norm(right)
+        return position, right, np.cross(right, forward), forward, distance
 
     def to_dict(self) -> dict:
         return {"position": list(self.position), "focal_point": list(self.focal_point),
@@ -186,12 +200,15 @@ class View:
     range: tuple[float, float] = (0.0, 1.0)  # colormap range, units of the field
     decimate: int = 1  # render every n-th particle (by particle id); 1 = all
     schedule: tuple[Window, ...] = (Window(),)
+    # send only particles this camera can see (hidden ones and those outside the image are
+    # left out by the sim); the image is unchanged without shadows, which hidden ones cast
+    occlusion_cull: bool = False
 
     @classmethod
     def from_dict(cls, obj, where: str) -> View:
         v = check.keys(obj, where, {"name", "camera"},
                        {"width", "height", "background", "field", "colormap", "range", "decimate",
-                        "schedule", *_FLAT}, error=SpecError)
+                        "occlusion_cull", "schedule", *_FLAT}, error=SpecError)
         rng = check.vector(v.get("range", cls.range), f"{where}.range", 2, SpecError)
         if not rng[0] < rng[1]:
             raise SpecError(f"{where}.range: lower bound {rng[0]} must be below upper {rng[1]}")
@@ -224,7 +241,9 @@ class View:
                    colormap=cmap, range=rng,
                    decimate=check.integer(v.get("decimate", 1), f"{where}.decimate", 1, None,
                                           SpecError),
-                   schedule=schedule)
+                   schedule=schedule,
+                   occlusion_cull=check.boolean(v.get("occlusion_cull", False),
+                                                f"{where}.occlusion_cull", SpecError))
 
     @property
     def t_start_s(self) -> float:
@@ -257,4 +276,5 @@ class View:
                 "colormap": (self.colormap if isinstance(self.colormap, str)
                              else self.colormap.to_dict()),
                 "range": list(self.range), "decimate": self.decimate,
+                **({"occlusion_cull": True} if self.occlusion_cull else {}),
                 "schedule": [w.to_dict() for w in self.schedule]}

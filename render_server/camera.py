@@ -29,14 +29,7 @@ class CameraBasis:
 
 
 def basis(camera: Camera) -> CameraBasis:
-    position = np.asarray(camera.position, dtype=np.float64)
-    forward = np.asarray(camera.focal_point, dtype=np.float64) - position
-    distance = float(np.linalg.norm(forward))
-    forward /= distance
-    right = np.cross(forward, np.asarray(camera.view_up, dtype=np.float64))
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    return CameraBasis(position, right, up, forward, distance)
+    return CameraBasis(*camera.frame())
 
 
 def view_matrix(camera: Camera) -> np.ndarray:

@@ -68,6 +68,7 @@ from protocol.session import NetworkOptions, QoS, Role, make_config, put
 from protocol.spec import DataRequest, Region, Spec, inside_mask
 from protocol.view import Window
 from sim.state import ParticleState
+from sim.visibility import visible_mask
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
 SPEC_RETRY_S = 0.2  # s between spec queries while waiting for a starting server
@@ -111,16 +112,23 @@ def particle_bytes(fields) -> int:
                                 for f in fields if f in SIM_FIELDS)
 
 
-def cull(ps: ParticleState, request: DataRequest) -> dict[str, np.ndarray]:
+def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict[str, np.ndarray]:
     """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
     field the simulation knows (unknown names are skipped; the caller reports them), of
     the m particles inside the request's regions (all n when it has none) whose original
-    id is a multiple of the request's `decimate`."""
+    id is a multiple of the request's `decimate` and, when the request names views to cull
+    for, that may show in one of them as spheres of `radius_m` (m; sim.visibility)."""
     keep = None if request.regions is None else inside_mask(ps.x, request.regions)
     if request.decimate > 1:
         every = ps.pid % request.decimate == 0
         keep = every if keep is None else keep & every
     idx = None if keep is None else np.flatnonzero(keep)
+    if request.visible_in and radius_m > 0.0:
+        x = ps.x if idx is None else ps.x[idx]
+        seen = np.zeros(len(x), dtype=bool)
+        for view in request.visible_in:
+            seen |= visible_mask(x, view, radius_m)
+        idx = np.flatnonzero(seen) if idx is None else idx[seen]
 
     def take(a: np.ndarray) -> np.ndarray:
         return a if idx is None else a[idx]
@@ -484,7 +492,10 @@ class RankPublisher:
                 self.stats.missing_fields.append(name)
                 print(f"rank {self.rank}: the spec asks for field {name!r}, which the simulation "
                       f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
-        fields = cull(ps, request)
+        spec = self.spec
+        radius = (spec.sphere_radius_m if spec is not None and spec.sphere_radius_m
+                  else 0.5 * self.spacing_m)  # as the server renders them
+        fields = cull(ps, request, radius)
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
                       self.bounds_m, fields, prev_time_s=prev)
         item = _Item(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)

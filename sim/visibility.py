@@ -27,12 +27,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from protocol.view import View
 
 MAX_BINS = 1 << 22  # bins per image, a bound on the cover buffer (32 MiB)
-BINS_PER_RADIUS = 3.0  # bin edge ~ a third of the typical disk radius (px)
+BINS_PER_RADIUS = 6.0  # bin edge ~ a sixth of the typical disk radius (px)
 
 
 def visible_mask(positions: np.ndarray, view: View, radius_m: float) -> np.ndarray:
@@ -72,35 +72,35 @@ def visible_mask(positions: np.ndarray, view: View, radius_m: float) -> np.ndarr
 @njit(cache=True)
 def _cover(x, y, d, r_in, near, b, cover):
     """cover[bin] = least depth d of a particle whose disk r_in holds every pixel center of
-    the bin."""
+    the bin (pixel centers of bin (i, j): i b + 0.5 ... (i + 1) b - 0.5, likewise in y)."""
     nby, nbx = cover.shape
     for q in range(len(x)):
         rad = r_in[q]
         if not near[q] or not rad > 0.5:
             continue
-        r2 = rad * rad
-        i0 = max(int(math.floor((x[q] - rad) / b)), 0)
-        i1 = min(int(math.floor((x[q] + rad) / b)), nbx - 1)
         j0 = max(int(math.floor((y[q] - rad) / b)), 0)
         j1 = min(int(math.floor((y[q] + rad) / b)), nby - 1)
+        dq = d[q]
         for j in range(j0, j1 + 1):
-            # farthest pixel centers of the bin: rows j b + 0.5 and (j + 1) b - 0.5
             dy = max(abs(j * b + 0.5 - y[q]), abs((j + 1) * b - 0.5 - y[q]))
-            if dy * dy > r2:
+            if dy >= rad:
                 continue
+            half = math.sqrt(rad * rad - dy * dy)  # the bin's columns must lie in x +- half
+            i0 = max(int(math.ceil((x[q] - half - 0.5) / b)), 0)
+            i1 = min(int(math.floor((x[q] + half + 0.5) / b)) - 1, nbx - 1)
+            row = cover[j]
             for i in range(i0, i1 + 1):
-                dx = max(abs(i * b + 0.5 - x[q]), abs((i + 1) * b - 0.5 - x[q]))
-                if dx * dx + dy * dy <= r2 and d[q] < cover[j, i]:
-                    cover[j, i] = d[q]
+                if dq < row[i]:
+                    row[i] = dq
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _visible(x, y, d, r_out, near, radius, b, w, h, cover):
     """Keep a particle unless every bin holding a pixel center inside its silhouette is
     covered nearer than its front (d - radius), or none is in the image."""
     nby, nbx = cover.shape
     keep = np.zeros(len(x), dtype=np.bool_)
-    for p in range(len(x)):
+    for p in prange(len(x)):
         if not near[p]:  # the sphere holds the camera or is behind it
             keep[p] = d[p] + radius > 0.0
             continue
@@ -110,21 +110,21 @@ def _visible(x, y, d, r_out, near, radius, b, w, h, cover):
             continue
         if x[p] + rad < 0.0 or x[p] - rad > w or y[p] + rad < 0.0 or y[p] - rad > h:
             continue  # out of view
-        r2 = rad * rad
         front = d[p] - radius
-        i0 = max(int(math.floor((x[p] - rad) / b)), 0)
-        i1 = min(int(math.floor((x[p] + rad) / b)), nbx - 1)
         j0 = max(int(math.floor((y[p] - rad) / b)), 0)
         j1 = min(int(math.floor((y[p] + rad) / b)), nby - 1)
         seen = False
         for j in range(j0, j1 + 1):
-            # nearest point of the bin's pixel-center rectangle to the center
+            # nearest pixel-center row of the bin to the center
             dy = max(j * b + 0.5 - y[p], 0.0, y[p] - ((j + 1) * b - 0.5))
-            if dy * dy > r2:
+            if dy > rad:
                 continue
+            half = math.sqrt(rad * rad - dy * dy)  # bins with a column center in x +- half
+            i0 = max(int(math.floor((x[p] - half - 0.5) / b)), 0)
+            i1 = min(int(math.floor((x[p] + half - 0.5) / b)), nbx - 1)
+            row = cover[j]
             for i in range(i0, i1 + 1):
-                dx = max(i * b + 0.5 - x[p], 0.0, x[p] - ((i + 1) * b - 0.5))
-                if dx * dx + dy * dy <= r2 and not cover[j, i] < front:
+                if not row[i] < front:
                     seen = True
                     break
             if seen:

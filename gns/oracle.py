@@ -7,7 +7,8 @@ chose them: a side view across the flow framing the column during initiation, an
 top and an aerial view framing the deposit during runout. Each view's window is cut into
 segments; each segment gets frames in proportion to how fast the material moves then
 (within the frame budget) and a region of interest: the padded extent of the particles
-that move in it, so the simulation leaves static material out. The colormap range is the
+that move in it, so the simulation leaves static material out, and (occlusion_cull) the
+simulation sends only what each camera can see. The colormap range is the
 predicted displacement magnitude with a margin. Axes: x is the flow direction, z is up.
 """
 
@@ -49,6 +50,7 @@ class OracleOptions:
     roi_time_margin: float = 0.1  # regions cover their window widened by this share of t
     speed_power: float = 2.0  # frames per segment in proportion to the integral of speed^p
     colormap: str = "Viridis (matplotlib)"
+    occlusion_cull: bool = True  # the sim sends only particles a view's camera can see
 
 
 def fit_camera(lo: np.ndarray, hi: np.ndarray, direction, view_up, aspect: float,
@@ -189,6 +191,7 @@ class Oracle:
                 "name": name, "camera": camera, "width": o.width, "height": o.height,
                 "field": "displacement", "colormap": o.colormap,
                 "range": [0.0, float(hi_d * (1.0 + o.margin))],
+                "occlusion_cull": o.occlusion_cull,
                 "schedule": [{"t_start_s": a, "t_end_s": b, "every_s": (b - a) / int(f),
                               "regions": [n for n, _ in wb]}
                              for (a, b), f, wb in zip(segs, share, windows_boxes, strict=True)]})

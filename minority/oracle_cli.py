@@ -88,7 +88,8 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     try:
         r = read_rollout(args.rollout)
         options = replace(OracleOptions(), run=args.run, frames=args.frames, width=args.width,
-                          height=args.height, segments=args.segments, margin=args.margin)
+                          height=args.height, segments=args.segments, margin=args.margin,
+                          occlusion_cull=not args.no_occlusion_cull)
         oracle = Oracle(r["positions"], float(r["frame_interval_s"]), r["bounds_m"],
                         float(r["particle_spacing_m"]), options)
         spec = oracle.spec({"rollout": str(args.rollout), "checkpoint": str(r.get("checkpoint")),
@@ -281,6 +282,9 @@ def add_oracle_parser(sub) -> None:
                    help="windows per view, each with its cadence and region (default 4)")
     q.add_argument("--margin", type=float, default=0.1,
                    help="framing and colormap margin, fraction (default 0.1)")
+    q.add_argument("--no-occlusion-cull", action="store_true",
+                   help="send every particle in the regions, hidden ones too (needed for "
+                        "`minority serve --shadows`: hidden particles cast shadows)")
     q.add_argument("--pvcc", type=Path, metavar="DIR",
                    help="also write each view's camera as DIR/{view}.pvcc for ParaView")
     q.set_defaults(func=_cmd_spec)

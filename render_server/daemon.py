@@ -124,6 +124,11 @@ class RenderServer:
         self._rank_chunks_received: dict[int, int] = {}
         self._token_gone_ns: dict[int, int] = {}
         self._drained = threading.Event()  # nothing more to assemble; set after the last put
+        culled = [v.name for v in self.spec.views if v.occlusion_cull]
+        if options.shadows and culled:
+            print(f"minority serve: views {', '.join(culled)} have occlusion_cull: the sim "
+                  "leaves hidden particles out, so their shadows are missing", file=sys.stderr,
+                  flush=True)
         warm_up()  # compile the kernels now, not on the first step
         self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,

@@ -70,6 +70,7 @@ def test_spec_views_events_range_and_budget(oracle):
                                              "runout_end"]
     hi = oracle.displacement[1]
     assert all(v.range == (0.0, pytest.approx(hi * 1.1)) for v in spec.views)
+    assert all(v.occlusion_cull for v in spec.views)  # the sim sends what the cameras see
     assert spec.provenance["predicted"]["onset_s"] == oracle.events.onset_s
     times = step_times(0.8, 1.3e-4)  # an MPM-like step
     counts = [len(rendered(spec, v, times)) for v in spec.views]

@@ -5,7 +5,8 @@ end of runout), splits the run into an initiation window (onset to the fastest m
 and a runout window (fast phase to rest), and plans three views as the reference paper
 chose them: a side view across the flow framing the column during initiation, and a
 top and an aerial view framing the deposit during runout. Each view's window is cut into
-segments; each segment gets frames in proportion to how fast the material moves then
+segments (one before and one after the predicted fast phase, the others splitting it); each
+segment gets frames in proportion to how fast the material moves then
 (within the frame budget) and a region of interest: the padded extent of the particles
 that move in it, so the simulation leaves static material out, and (occlusion_cull) the
 simulation sends only what each camera can see. The colormap range is the
@@ -73,9 +74,20 @@ def fit_camera(lo: np.ndarray, hi: np.ndarray, direction, view_up, aspect: float
             "view_up": up.tolist(), "view_angle_deg": view_angle_deg}
 
 
-def _segments(t0: float, t1: float, k: int) -> list[tuple[float, float]]:
-    edges = np.linspace(t0, t1, k + 1)
-    return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
+def _segments(t0: float, t1: float, k: int, fast: tuple[float, float] | None = None,
+              min_s: float = 0.0) -> list[tuple[float, float]]:
+    """k segments of [t0, t1]: one before and one after the fast phase `fast` (when the
+    window reaches more than `min_s` beyond it), the rest splitting the fast phase evenly;
+    k even splits without a fast phase inside the window."""
+    lo, hi = (max(t0, fast[0]), min(t1, fast[1])) if fast else (t0, t0)
+    if hi - lo <= min_s:
+        edges = np.linspace(t0, t1, k + 1).tolist()
+    else:
+        before, after = lo - t0 > min_s, t1 - hi > min_s
+        inner = np.linspace(lo if before else t0, hi if after else t1,
+                            max(k - before - after, 1) + 1).tolist()
+        edges = ([t0] if before else []) + inner + ([t1] if after else [])
+    return list(zip(edges[:-1], edges[1:], strict=True))
 
 
 def _allocate(weights: np.ndarray, frames: int) -> np.ndarray:
@@ -140,6 +152,12 @@ class Oracle:
         boxes[-1][2, 1] += self.o.roi_front_pad * travel * 0.5  # z: heaving ahead of the front
         return [np.clip(b, self.bounds[:, :1], self.bounds[:, 1:]) for b in boxes]
 
+    def fast_phase(self) -> tuple[float, float] | None:
+        """The predicted fast phase (speed scale >= half its peak; the longest if several),
+        s."""
+        fast = fast_windows(self.time, self.scale)
+        return max(fast, key=lambda w: w[1] - w[0]) if fast else None
+
     def framed(self, phase: str) -> np.ndarray:
         """[3, 2] box (m) a view of the phase frames: the column over the initiation; the
         predicted final deposit (the last frame at the end of the runout) for the runout."""
@@ -163,7 +181,9 @@ class Oracle:
         windows = self.windows()
         regions, schedules, boxes = [], {}, {}
         for phase, (t0, t1) in windows.items():
-            segs = _segments(t0, t1, o.segments)
+            # a part outside the fast phase gets its own segment if it is 10 % of the window
+            segs = _segments(t0, t1, o.segments, self.fast_phase(),
+                             max(self.dt, 0.1 * (t1 - t0)))
             for k, (a, b) in enumerate(segs):
                 # the region covers the segment widened by the oracle's timing tolerance: a
                 # run that is early or late by that much still has its movers inside

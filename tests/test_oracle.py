@@ -186,3 +186,16 @@ def test_an_mpm_run_reads_as_a_prediction(tmp_path):
     r = read_rollout(tmp_path / "mpm.h5")
     assert r["frame_interval_s"] == 0.02 and r["positions"].shape == pos.shape
     assert r["bounds_m"].shape == (3, 2)
+
+
+def test_segments_cut_at_the_fast_phase():
+    from gns.oracle import _segments
+
+    def edges(segs):
+        return [a for a, _ in segs] + [segs[-1][1]]
+
+    assert edges(_segments(0.0, 1.0, 4, (0.1, 0.4), 0.05)) == pytest.approx([0, 0.1, 0.25, 0.4, 1])
+    assert edges(_segments(0.0, 1.0, 4, None)) == pytest.approx([0, 0.25, 0.5, 0.75, 1])
+    # the part before is too short for a segment of its own: the fast phase starts the window
+    assert edges(_segments(0.0, 1.0, 4, (0.01, 0.4), 0.05)) == pytest.approx(
+        [0, 0.4 / 3, 0.8 / 3, 0.4, 1])

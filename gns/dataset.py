@@ -39,8 +39,29 @@ class Trajectory:
     bounds_m: np.ndarray  # [3, 2] lo, hi per axis, m
 
 
-def read_sim_trajectory(path: Path, stride: int) -> tuple[np.ndarray, dict]:
-    """Positions every stride-th frame [frames, n, 3] and the run's attributes."""
+def coarse_grain(positions: np.ndarray, spacing_m: float, factor: int) -> np.ndarray:
+    """[frames, m, 3]: the mean position of each group of particles that start in one cube of
+    edge factor * spacing_m (a cube of the lattice anchored at the origin), from positions
+    [frames, n, 3] (m) of particles seeded at spacing_m; frame 0 is the seeding. A body whose
+    extent is a whole number of cubes gives factor^3 particles per group, and the means start
+    on the lattice (i + 1/2) * factor * spacing_m: the same particles a run at that spacing
+    seeds. Groups are ordered by their cube (x, then y, then z)."""
+    if factor == 1:
+        return positions
+    cube = np.floor(positions[0].astype(np.float64) / (factor * spacing_m) + 1e-6).astype(np.int64)
+    keys, group = np.unique(cube, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    counts = np.bincount(group, minlength=len(keys)).astype(np.float64)
+    out = np.empty((positions.shape[0], len(keys), 3), dtype=np.float64)
+    for a in range(3):
+        for k in range(positions.shape[0]):
+            out[k, :, a] = np.bincount(group, positions[k, :, a], minlength=len(keys)) / counts
+    return out
+
+
+def read_sim_trajectory(path: Path, stride: int, factor: int = 1) -> tuple[np.ndarray, dict]:
+    """Positions every stride-th frame [frames, n, 3], coarse-grained by `factor`
+    (coarse_grain), and the run's attributes (particle_spacing_m: after coarse-graining)."""
     with h5py.File(path, "r") as f:
         frames = len(f["time"])
         pos = f["positions"][:frames:stride]
@@ -49,7 +70,10 @@ def read_sim_trajectory(path: Path, stride: int) -> tuple[np.ndarray, dict]:
         attrs["friction_angle_deg"] = float(f["material"][0])
     if not np.isfinite(pos).all():
         raise DatasetError(f"{path}: non-finite positions")
-    return pos.astype(np.float32), attrs
+    spacing = float(attrs["particle_spacing_m"])
+    attrs["mpm_particle_spacing_m"] = spacing
+    attrs["particle_spacing_m"] = spacing * factor
+    return coarse_grain(pos, spacing, factor).astype(np.float32), attrs
 
 
 def _stats(trajs: list[np.ndarray]) -> dict:
@@ -74,8 +98,10 @@ def _stats(trajs: list[np.ndarray]) -> dict:
 
 
 def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
-          connectivity_radius_m: float, config_path: str = "", log=sys.stderr) -> dict:
-    """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir; return the metadata."""
+          connectivity_radius_m: float, config_path: str = "", coarse_grain: int = 1,
+          log=sys.stderr) -> dict:
+    """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir, coarse-grained by
+    `coarse_grain` (1: as run); return the metadata."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}
@@ -84,7 +110,7 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
     phis = []
     try:
         for plan, path in runs:
-            pos, attrs = read_sim_trajectory(path, stride)
+            pos, attrs = read_sim_trajectory(path, stride, coarse_grain)
             dt = float(attrs["output_interval_s"]) * stride
             frame_dt.add(round(dt, 12))
             spacing.add(round(float(attrs["particle_spacing_m"]), 9))
@@ -119,6 +145,7 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
         "bounds_m": [[0.0, float(h)] for h in bounds_hi],
         "connectivity_radius_m": connectivity_radius_m,
         "particle_spacing_m": spacing.pop(), "frame_interval_s": frame_dt.pop(),
+        "coarse_grain": coarse_grain,
         **_stats(train_pos),
         "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)),
         "scenes": scenes, "config": str(config_path),

@@ -55,6 +55,9 @@ class SweepConfig:
     geometry: dict
     splits: dict
     named: list[dict] = field(default_factory=list)
+    # the MPM runs at a cell coarse_grain times smaller (coarse_grain^3 times the particles);
+    # the dataset averages each group of coarse_grain^3 particles back to one at the spacing
+    coarse_grain: int = 1
 
     @property
     def spacing_m(self) -> float:
@@ -72,13 +75,15 @@ def load_config(path: str | Path) -> SweepConfig:
                           stride=int(raw["stride"]),
                           connectivity_radius_m=float(raw["connectivity_radius_m"]),
                           geometry=raw["geometry"], splits=raw["splits"],
-                          named=list(raw.get("named", [])))
+                          named=list(raw.get("named", [])),
+                          coarse_grain=int(raw.get("coarse_grain", 1)))
     except KeyError as exc:
         raise SweepError(f"{path}: missing key {exc}") from None
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise SweepError(f"{path}: {exc}") from None
-    if cfg.stride < 1 or cfg.connectivity_radius_m <= 0:
-        raise SweepError(f"{path}: stride must be >= 1 and connectivity_radius_m > 0")
+    if cfg.stride < 1 or cfg.connectivity_radius_m <= 0 or cfg.coarse_grain < 1:
+        raise SweepError(f"{path}: stride and coarse_grain must be >= 1 and "
+                         "connectivity_radius_m > 0")
     return cfg
 
 
@@ -136,6 +141,7 @@ def plan(cfg: SweepConfig) -> list[ScenePlan]:
 
 def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:
     return cfg.template.format(
+        cell_size_m=float(cfg.geometry["cell_size_m"]) / cfg.coarse_grain,
         name=p.name, domain_length_m=p.domain_length_m, width_m=p.width_m,
         friction_angle_deg=p.friction_angle_deg, length_m=p.length_m, height_m=p.height_m,
         duration_s=cfg.duration_s, output_interval_s=cfg.output_interval_s)

@@ -17,7 +17,8 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
         cfg = load_config(args.config)
         runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
         meta = build(runs, args.out, stride=cfg.stride,
-                     connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config))
+                     connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config),
+                     coarse_grain=cfg.coarse_grain)
     except (SweepError, DatasetError, OSError) as exc:
         print(f"minority oracle dataset: error: {exc}", file=sys.stderr)
         return 1

@@ -309,3 +309,35 @@ def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):
     assert any(changed)
     with pytest.raises(ValueError, match="not both"):
         train(path, tuned, ModelConfig(), tc, resume=base, init=base, device="cpu")
+
+
+def test_coarse_grain_averages_the_groups_of_each_coarse_cube():
+    from gns.dataset import coarse_grain
+
+    fine = 0.5  # m
+    idx = np.stack(np.meshgrid(np.arange(4), np.arange(2), np.arange(3), indexing="ij"), -1)
+    x0 = (idx.reshape(-1, 3) + 0.5) * fine  # 4 x 2 x 3 lattice: two whole cubes, one half cube
+    rng = np.random.default_rng(0)
+    later = x0 + rng.normal(0.0, 0.1, x0.shape)
+    got = coarse_grain(np.stack([x0, later]), fine, 2)
+    assert got.shape == (2, 4, 3)
+    # frame 0: the whole cubes' means sit on the coarse lattice (j + 1/2) * 2 * fine
+    np.testing.assert_allclose(got[0, [0, 2]], [[0.5, 0.5, 0.5], [1.5, 0.5, 0.5]])
+    cube = np.floor(x0 / 1.0).astype(int)
+    for k, key in enumerate([(0, 0, 0), (0, 0, 1), (1, 0, 0), (1, 0, 1)]):  # sorted cubes
+        members = (cube == key).all(axis=1)
+        assert members.sum() == (8 if key[2] == 0 else 4)
+        np.testing.assert_allclose(got[1, k], later[members].mean(axis=0))
+    assert coarse_grain(got, 1.0, 1) is got
+
+
+def test_coarse_grain_config_runs_the_mpm_finer():
+    from gns.sweep import scene_toml
+
+    cfg = load_config(SWEEP.with_name("column_sweep_cg2.toml"))
+    coarse = load_config(SWEEP)
+    assert cfg.coarse_grain == 2 and coarse.coarse_grain == 1
+    p = plan(cfg)[0]
+    assert "cell_size_m = 0.016" in scene_toml(cfg, p)
+    assert "cell_size_m = 0.032" in scene_toml(coarse, plan(coarse)[0])
+    assert [q.name for q in plan(cfg)][-2:] == ["showcase", "wide_10x"]

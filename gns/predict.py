@@ -14,7 +14,8 @@ from gns.export import write_hdf5, write_vtk_series
 from gns.rollout import initial_state, rollout
 from gns.train import load_checkpoint
 
-HistoryFn = Callable[[float, float, int], "np.ndarray | None"]
+# (particle spacing m, frame interval s, C, coarse_grain) -> [C + 1, n, 3] m or None
+HistoryFn = Callable[[float, float, int, int], "np.ndarray | None"]
 
 
 @dataclass
@@ -48,14 +49,16 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
             history: np.ndarray | HistoryFn | None = None) -> Prediction:
     """Seed `scene` at the model's spacing and roll it out for duration_s (default: the
     scene's). `history` [C + 1, n, 3] (m): the first frames, e.g. from the MPM, or a function
-    of (particle spacing m, frame interval s, C) giving them or None (None: C + 1 frames at
-    rest). Raises RolloutError when the rollout diverges, ValueError on bad input."""
+    of (particle spacing m, frame interval s, C, the training data's coarse_grain) giving them
+    or None (None: C + 1 frames at rest). Raises RolloutError when the rollout diverges,
+    ValueError on bad input."""
     model, ckpt = load_checkpoint(checkpoint, device)
     st = ckpt["stats"]
     c = model.config.input_velocities
     init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"], c)
     if callable(history):
-        history = history(float(st["particle_spacing_m"]), float(st["frame_interval_s"]), c)
+        history = history(float(st["particle_spacing_m"]), float(st["frame_interval_s"]), c,
+                          int(st.get("coarse_grain", 1)))
     if history is not None:
         if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
             raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")

@@ -44,6 +44,7 @@ class TrainConfig:
 def combined_stats(meta: dict, noise_std: float) -> dict:
     """Metadata statistics with the noise folded into the stds (as learning_to_simulate)."""
     stats = {k: meta[k] for k in STAT_KEYS}
+    stats["coarse_grain"] = int(meta.get("coarse_grain", 1))  # how the MPM data were made
     for key in ("vel_std", "acc_std"):
         stats[key] = [math.sqrt(s * s + noise_std * noise_std) for s in meta[key]]
     return stats

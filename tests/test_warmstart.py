@@ -28,6 +28,20 @@ def test_mpm_history_starts_on_the_gns_lattice_and_falls(tmp_path):
     np.testing.assert_allclose(p.positions[: c + 1], h, atol=1e-6)
 
 
+def test_coarse_grained_history_runs_finer_and_starts_on_the_gns_lattice(tmp_path):
+    scene = tmp_path / "column.toml"
+    scene.write_text(demo_column(DemoOptions(cell_size_m=0.032, duration_s=0.1)))
+    spacing, dt, c = 0.016, 0.005, 2
+    rest = initial_state(scene, spacing, dt, c).positions[0]
+    fine = mpm_history(scene, spacing, dt, c, coarse_grain=2)  # MPM at 0.008 m, cell 0.016
+    coarse = mpm_history(scene, spacing, dt, c)
+    assert fine.shape == coarse.shape == (c + 1, len(rest), 3)
+    order = lambda x: x[np.lexsort(x.T)]  # noqa: E731
+    np.testing.assert_allclose(order(fine[0]), order(rest), atol=1e-9)
+    assert not np.allclose(fine[-1], coarse[-1])  # another MPM resolution, another motion
+    assert fine[0, :, 2].mean() > fine[-1, :, 2].mean()
+
+
 def test_mpm_history_refuses_a_domain_it_cannot_seed(tmp_path):
     scene = tmp_path / "odd.toml"
     text = demo_column(DemoOptions(cell_size_m=0.032))

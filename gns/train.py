@@ -137,6 +137,11 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     elif init:
         history = [{"init": str(init), "init_step": int(ckpt["step"])}]
         ckpt = {}  # fresh optimizer
+        for key in ("particle_spacing_m", "frame_interval_s", "connectivity_radius_m"):
+            if not math.isclose(float(stats[key]), float(meta[key]), rel_tol=1e-6):
+                raise ValueError(f"--init: the checkpoint's {key} {stats[key]} is not the "
+                                 f"dataset's {meta[key]}")
+        stats = {**stats, "coarse_grain": int(meta.get("coarse_grain", 1))}  # the data's
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)

@@ -125,8 +125,9 @@ class DataRequest:
     fields: tuple[str, ...]  # in first-use order
     regions: tuple[Region, ...] | None
     decimate: int = 1
-    # when every due view has occlusion_cull: send only particles visible in one of them
-    visible_in: tuple[View, ...] = ()
+    # when every due view has occlusion_cull: each due view with the regions it shows (None:
+    # every particle); send only particles visible in one of them among what it renders
+    visible_in: tuple[tuple[View, tuple[Region, ...] | None], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -176,7 +177,8 @@ class Spec:
         boxes = [self.view_regions(v, step, time_s, prev_time_s) for v in views]
         regions = (None if any(b is None for b in boxes)
                    else tuple(dict.fromkeys(r for b in boxes for r in b)))
-        visible_in = tuple(views) if all(v.occlusion_cull for v in views) else ()
+        visible_in = (tuple(zip(views, boxes, strict=True))
+                      if all(v.occlusion_cull for v in views) else ())
         return DataRequest(tuple(v.name for v in views), tuple(fields), regions, stride,
                            visible_in)
 

@@ -124,11 +124,17 @@ def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict
         keep = every if keep is None else keep & every
     idx = None if keep is None else np.flatnonzero(keep)
     if request.visible_in and radius_m > 0.0:
-        x = ps.x if idx is None else ps.x[idx]
-        seen = np.zeros(len(x), dtype=bool)
-        for view in request.visible_in:
-            seen |= visible_mask(x, view, radius_m)
-        idx = np.flatnonzero(seen) if idx is None else idx[seen]
+        rows = np.arange(ps.n) if idx is None else idx
+        x, pid = ps.x[rows], ps.pid[rows]
+        seen = np.zeros(len(rows), dtype=bool)
+        for view, regions in request.visible_in:
+            # among the particles the server draws in this view: its regions, its stride
+            own = np.ones(len(rows), dtype=bool) if regions is None else inside_mask(x, regions)
+            if view.decimate > 1:
+                own &= pid % view.decimate == 0
+            sub = np.flatnonzero(own)
+            seen[sub[visible_mask(x[sub], view, radius_m)]] = True
+        idx = rows[seen]
 
     def take(a: np.ndarray) -> np.ndarray:
         return a if idx is None else a[idx]

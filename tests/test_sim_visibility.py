@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from protocol.errors import SpecError
-from protocol.spec import Camera, Spec, View, Window
+from protocol.spec import Camera, Region, Spec, View, Window, inside_mask
 from render_server.render import prepare, render
 from sim.publish import cull
 from sim.state import ParticleState
@@ -76,7 +76,7 @@ def test_spec_occlusion_cull_round_trip_validation_and_request():
     spec = Spec("run", (culled, plain))
     assert Spec.from_dict(spec.to_dict()) == spec
     assert "occlusion_cull" not in spec.to_dict()["views"][1]  # old specs encode as before
-    assert spec.request(1, 0.1).visible_in == (culled,)
+    assert spec.request(1, 0.1).visible_in == ((culled, None),)
     assert spec.request(2, 0.2).visible_in == ()  # view b needs every particle
     bad = spec.to_dict()
     bad["views"][0]["occlusion_cull"] = "yes"
@@ -84,13 +84,43 @@ def test_spec_occlusion_cull_round_trip_validation_and_request():
         Spec.from_dict(bad)
 
 
+def _particles(pos):
+    n = len(pos)
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    return ParticleState(x=pos.copy(), v=np.zeros((n, 3)), C=np.zeros((n, 3, 3)), F=eye,
+                         tau=np.zeros((n, 3, 3)), mass=np.ones(n), vol0=np.ones(n),
+                         x0=pos + 0.001, pid=np.arange(n))
+
+
+@pytest.mark.parametrize("decimate", [1, 2])
+def test_each_view_is_culled_among_what_it_draws(decimate):
+    """View a shows only the back half of the block (its region) and, with decimate 2, only
+    even ids: the front half and odd ids, which view b draws, must not hide a's particles."""
+    pos = block(shape=(12, 12, 8))
+    values = np.random.default_rng(2).random(len(pos))
+    back = Region("back", (0.0, 0.06, 0.0), (1.0, 1.0, 1.0))
+    everything = Region("all", (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    a = View("a", CAMERAS["side"], 160, 120, decimate=decimate, occlusion_cull=True,
+             schedule=(Window(regions=("back",)),))
+    b = View("b", CAMERAS["top_parallel"], 160, 120, occlusion_cull=True,
+             schedule=(Window(regions=("all",)),))
+    spec = Spec("run", (a, b), regions=(back, everything))
+    sent = cull(_particles(pos), spec.request(20, 0.0), RADIUS)
+    assert len(sent["positions"]) < len(pos)
+    # what the server draws in view a, from what was sent and from everything
+    ids = np.flatnonzero(inside_mask(pos, (back,)) & (np.arange(len(pos)) % decimate == 0))
+    got = sent["positions"].astype(np.float64)
+    drawn = inside_mask(got, (back,))
+    index = {tuple(p): i for i, p in enumerate(pos.astype(np.float32).tolist())}
+    rows = np.array([index[tuple(p)] for p in got[drawn].astype(np.float32).tolist()], int)
+    rows = rows[rows % decimate == 0]
+    np.testing.assert_array_equal(image(pos[rows], values[rows], a), image(pos[ids], values[ids], a))
+
+
 def test_cull_sends_the_union_of_what_the_views_see():
     pos = block(shape=(12, 8, 8))
     n = len(pos)
-    eye = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
-    ps = ParticleState(x=pos.copy(), v=np.zeros((n, 3)), C=np.zeros((n, 3, 3)), F=eye,
-                       tau=np.zeros((n, 3, 3)), mass=np.ones(n), vol0=np.ones(n),
-                       x0=pos + 0.001, pid=np.arange(n))
+    ps = _particles(pos)
     side = View("side", CAMERAS["side"], 160, 120, occlusion_cull=True)
     top = View("top", CAMERAS["top_parallel"], 160, 120, occlusion_cull=True)
     spec = Spec("run", (side, top))

@@ -1,7 +1,8 @@
 """What a predicted run does and when: events, windows, extents (the oracle's analysis).
 
 Works on any trajectory [frames, n, 3] (m) with its frame interval (s): a GNS rollout, or
-an MPM run when the prediction is scored. Speeds are backward differences per frame (m/s).
+an MPM run when the prediction is scored. Speeds are in m/s; the event series use centered
+differences, so that a frame's speed is the speed at its time.
 """
 
 from __future__ import annotations
@@ -28,15 +29,25 @@ class Events:
     kinetic_m2_s2: np.ndarray  # [frames] mean squared speed (specific kinetic energy x 2)
 
 
-def speeds(positions: np.ndarray, frame_interval_s: float) -> np.ndarray:
-    """[frames, n] particle speed (m/s); frame 0 has speed 0."""
+def speeds(positions: np.ndarray, frame_interval_s: float, centered: bool = False) -> np.ndarray:
+    """[frames, n] particle speed (m/s) from positions [frames, n, 3] (m).
+
+    Backward differences by default (frame 0: 0): the mean speed over the frame before, i.e.
+    the speed half a frame before the frame's time. `centered`: (x[k+1] - x[k-1]) / 2 dt, the
+    speed at the frame's own time (one-sided at the ends), as a run's instantaneous particle
+    velocities give it; event times from backward differences come out half a frame late.
+    """
+    x = positions.astype(np.float64)
+    if centered and len(x) > 1:
+        return np.linalg.norm(np.gradient(x, frame_interval_s, axis=0), axis=2)
     s = np.zeros(positions.shape[:2])
-    s[1:] = np.linalg.norm(np.diff(positions.astype(np.float64), axis=0), axis=2) / frame_interval_s
+    s[1:] = np.linalg.norm(np.diff(x, axis=0), axis=2) / frame_interval_s
     return s
 
 
 def find_events(positions: np.ndarray, frame_interval_s: float) -> Events:
-    sp = speeds(positions, frame_interval_s)
+    """Events of a trajectory, from the speed at each frame's time (centered differences)."""
+    sp = speeds(positions, frame_interval_s, centered=True)
     return events_from_series(np.arange(len(sp)) * frame_interval_s,
                               np.quantile(sp, SPEED_QUANTILE, axis=1), (sp * sp).mean(axis=1))
 

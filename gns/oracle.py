@@ -111,7 +111,7 @@ class Oracle:
         self.bounds = np.asarray(bounds_m, dtype=np.float64).reshape(3, 2)
         self.spacing = float(spacing_m)
         self.o = options or OracleOptions()
-        sp = speeds(self.positions, self.dt)
+        sp = speeds(self.positions, self.dt, centered=True)  # at the frames' times
         self.time = np.arange(len(sp)) * self.dt
         self.scale = np.quantile(sp, 0.95, axis=1)
         self.events: Events = events_from_series(self.time, self.scale, (sp * sp).mean(axis=1))

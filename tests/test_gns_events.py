@@ -55,3 +55,18 @@ def test_fast_windows_cover_the_speed_bump():
     assert t0 == pytest.approx(0.20, abs=0.015) and t1 == pytest.approx(0.40, abs=0.015)
     steps = np.array([1.0, 0.0, 1.0, 1.0, 0.0, 0.2])
     assert fast_windows(t[:6], steps) == [(0.0, 0.0), (0.02, 0.03)]
+
+
+def test_event_speeds_are_taken_at_the_frame_times():
+    """A run's in situ statistics use instantaneous velocities; a backward difference is the
+    speed half a frame earlier, so the event series use centered differences."""
+    from gns.events import speeds
+
+    t = np.arange(41) * DT
+    accel = 2.0  # m/s^2, from rest
+    pos = np.zeros((41, 3, 3))
+    pos[:, :, 0] = 0.5 * accel * t[:, None] ** 2
+    np.testing.assert_allclose(speeds(pos, DT, centered=True)[1:-1, 0], accel * t[1:-1])
+    np.testing.assert_allclose(speeds(pos, DT)[1:, 0], accel * (t[1:] - DT / 2))
+    # the onset (5 % of the peak speed scale, 0.04 m/s at t = 0.02 s) is found at its frame
+    assert find_events(pos, DT).onset_s == pytest.approx(0.02)

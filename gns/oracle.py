@@ -24,11 +24,10 @@ from gns.events import (
     MOVING_SPEED_FRACTION,
     Events,
     displacement_range,
-    events_from_series,
     extent,
     fast_windows,
+    find_events,
     moving_points,
-    speeds,
 )
 from protocol.spec import SPEC_VERSION, Spec
 
@@ -111,10 +110,9 @@ class Oracle:
         self.bounds = np.asarray(bounds_m, dtype=np.float64).reshape(3, 2)
         self.spacing = float(spacing_m)
         self.o = options or OracleOptions()
-        sp = speeds(self.positions, self.dt, centered=True)  # at the frames' times
-        self.time = np.arange(len(sp)) * self.dt
-        self.scale = np.quantile(sp, 0.95, axis=1)
-        self.events: Events = events_from_series(self.time, self.scale, (sp * sp).mean(axis=1))
+        self.events: Events = find_events(self.positions, self.dt)
+        self.time = np.arange(len(self.positions)) * self.dt
+        self.scale = self.events.speed_scale_m_s  # [frames] m/s, at the frames' times
         self.threshold = MOVING_SPEED_FRACTION * self.events.peak_speed_m_s
         self.displacement = displacement_range(self.positions)
 

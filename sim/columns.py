@@ -26,7 +26,7 @@ class ColumnSpec:
     youngs_modulus_pa: float = 1.0e6
     poisson_ratio: float = 0.3
     friction_angle_deg: float = 30.0
-    dp_cone: str = "plane_strain"  # sim.scene.DPCone value
+    dp_cone: str = "simple_shear"  # sim.scene.DPCone value
     floor_friction: float = 0.5
     side_friction: float = 0.0
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
@@ -34,6 +34,7 @@ class ColumnSpec:
     duration_s: float = 0.2
     output_interval_s: float = 0.02
     cfl: float = 0.3
+    flip: float = 0.99  # FLIP fraction of the particle velocity update (0: APIC)
 
     @property
     def aspect_ratio(self) -> float:
@@ -78,6 +79,9 @@ y_max = {float(c.side_friction)!r}
 duration_s = {float(c.duration_s)!r}
 output_interval_s = {float(c.output_interval_s)!r}
 cfl = {float(c.cfl)!r}
+
+[numerics]
+flip = {float(c.flip)!r}
 """
 
 

@@ -282,7 +282,7 @@ class SlabSimulator(Simulator):
             self._add_ghost(bb - self._la, from_right, slice(0, SHARED_NODES), slot)
 
     def _boundary(self, xl: int, nodes: slice):
-        """(yz block indices, buffers [k, 2, BUF_NODES, BUF_NODES, 4]) of the non-empty blocks
+        """(yz block indices, buffers [k, 2, BUF_NODES, BUF_NODES, GRID_FIELDS]) of the non-empty blocks
         of local x-block xl, restricted to the x nodes the neighbour shares."""
         b = self._bins
         nyz = int(b.nblocks3[1] * b.nblocks3[2])

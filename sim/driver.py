@@ -113,7 +113,7 @@ class BlockBinning:
     key: np.ndarray  # [capacity >= n] int64, block of each particle
     counts: np.ndarray  # [BIN_CHUNKS, nblocks] int64, counting-sort scratch
     first_bad: np.ndarray  # [BIN_CHUNKS] int64
-    buf: np.ndarray  # [slots, BUF_NODES, BUF_NODES, BUF_NODES, 4] float64, P2G buffers
+    buf: np.ndarray  # [slots, BUF_NODES, BUF_NODES, BUF_NODES, GRID_FIELDS] float64, P2G buffers
     n_active: int = 0
 
     @classmethod
@@ -128,7 +128,7 @@ class BlockBinning:
 
     @staticmethod
     def _buffers(slots: int) -> np.ndarray:
-        return np.empty((slots,) + (kernels.BUF_NODES,) * 3 + (4,))
+        return np.empty((slots,) + (kernels.BUF_NODES,) * 3 + (kernels.GRID_FIELDS,))
 
     def ensure_buffers(self, extra: int = 0) -> None:
         """Room for the n_active block buffers plus `extra` (a slab rank's ghost blocks)."""
@@ -241,7 +241,7 @@ class Simulator:
                                    self._gravity, w.axis, w.pos, w.side, w.mu, w.lo, w.hi)
         t3 = time.perf_counter()
         kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, off, inv_dx, dt, self._lo,
-                    self._hi, self._lam, self._mu, self._alpha, self._stats)
+                    self._hi, self._lam, self._mu, self._alpha, self.scene.flip, self._stats)
         t4 = time.perf_counter()
         c4 = time.thread_time()
         self._reduce_stats()

@@ -39,21 +39,25 @@ def _offsets():
 
 
 def reference_step(s: ReferenceState, *, mass, vol0, grid_shape, origin, dx, dt, gravity,
-                   walls, lo, hi, lam, mu, alpha) -> tuple[ReferenceState, np.ndarray]:
-    """One step; returns the new state and the grid [nx, ny, nz, 4] after the update."""
+                   walls, lo, hi, lam, mu, alpha, flip=0.0) -> tuple[ReferenceState, np.ndarray]:
+    """One step; returns the new state and the grid [nx, ny, nz, 7] after the update
+    (velocity, mass, velocity change)."""
     x0 = np.asarray(origin, dtype=np.float64) * dx
     X = (s.x - x0) / dx
     base, fx, w = _weights(X)
     # P2G
     A = (-dt * APIC_D_INV / dx**2) * vol0[:, None, None] * s.tau + mass[:, None, None] * s.C
     grid = np.zeros(tuple(grid_shape) + (4,))
+    free = np.zeros(tuple(grid_shape) + (3,))  # APIC momentum without the stress impulse
     for off in _offsets():
         wt = w[off[0], :, 0] * w[off[1], :, 1] * w[off[2], :, 2]
         dpos = (off - fx) * dx
         mom = wt[:, None] * (mass[:, None] * s.v + np.einsum("nij,nj->ni", A, dpos))
+        mom_free = wt[:, None] * mass[:, None] * (s.v + np.einsum("nij,nj->ni", s.C, dpos))
         idx = tuple((base + off).T)
         for a in range(3):
             np.add.at(grid[..., a], idx, mom[:, a])
+            np.add.at(free[..., a], idx, mom_free[:, a])
         np.add.at(grid[..., 3], idx, wt * mass)
     # grid update
     m = grid[..., 3]
@@ -80,14 +84,18 @@ def reference_step(s: ReferenceState, *, mass, vol0, grid_shape, origin, dx, dt,
         with np.errstate(divide="ignore", invalid="ignore"):
             f = np.where(stick, 0.0, 1.0 + walls.mu[wk] * vnh / vt)
         vel[hit] = vh * f[:, None]
-    grid_out = np.concatenate([vel, m[..., None]], axis=-1)
+    dvel = np.zeros_like(vel)
+    dvel[has] = vel[has] - free[has] / m[has][:, None]
+    grid_out = np.concatenate([vel, m[..., None], dvel], axis=-1)
     # G2P
     v_new = np.zeros_like(s.v)
+    dv = np.zeros_like(s.v)
     c_new = np.zeros_like(s.C)
     for off in _offsets():
         wt = w[off[0], :, 0] * w[off[1], :, 1] * w[off[2], :, 2]
         gv = vel[tuple((base + off).T)]
         v_new += wt[:, None] * gv
+        dv += wt[:, None] * dvel[tuple((base + off).T)]
         c_new += (APIC_D_INV / dx) * wt[:, None, None] * np.einsum("ni,nj->nij", gv,
                                                                    off - fx)
     x_new = np.clip(s.x + dt * v_new, lo, hi)
@@ -97,4 +105,5 @@ def reference_step(s: ReferenceState, *, mass, vol0, grid_shape, origin, dx, dt,
     F_new = U @ (np.exp(eps)[:, :, None] * Vt)
     t_diag = 2.0 * mu * eps + lam * eps.sum(axis=1, keepdims=True)
     tau_new = U @ (t_diag[:, :, None] * U.transpose(0, 2, 1))
-    return ReferenceState(x_new, v_new, c_new, F_new, tau_new), grid_out
+    v_particle = flip * (s.v + dv) + (1.0 - flip) * v_new
+    return ReferenceState(x_new, v_particle, c_new, F_new, tau_new), grid_out

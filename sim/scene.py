@@ -30,18 +30,24 @@ class SceneError(ValueError):
 
 
 class DPCone(Enum):
-    """How the Drucker-Prager cone is fitted to the Mohr-Coulomb friction angle phi.
+    """How the Drucker-Prager cone is fitted to the friction angle phi; M is the slope q / p
+    of the cone in (p, q) space (see sim/README.md, "Drucker-Prager cone").
 
-    COMPRESSION: Klár et al. 2016, M = 6 sin(phi) / (3 - sin(phi)) (outer cone, matches
-    triaxial compression). PLANE_STRAIN: M = sqrt(3) sin(phi), the match in plane strain
-    for this return mapping's non-dilatant flow (see sim/README.md, "Drucker-Prager cone");
-    M is the slope q / p of the cone in (p, q) space."""
+    SIMPLE_SHEAR (default): M = sqrt(3) tan(phi), i.e. sqrt(J2) <= tan(phi) p: a layer in
+    simple shear yields at shear / normal stress = tan(phi), the granular friction
+    coefficient of the mu(I) rheology (GDR MiDi 2004, Jop et al. 2006) and of a pile at its
+    angle of repose. PLANE_STRAIN: M = sqrt(3) sin(phi), the Mohr-Coulomb angle phi in plane
+    strain for this return mapping's non-dilatant flow (which then shears at tan = sin(phi),
+    Davis 1968). COMPRESSION: Klár et al. 2016, M = 6 sin(phi) / (3 - sin(phi)) (outer cone,
+    matches triaxial compression)."""
 
-    COMPRESSION = "compression"
+    SIMPLE_SHEAR = "simple_shear"
     PLANE_STRAIN = "plane_strain"
+    COMPRESSION = "compression"
 
 
-DEFAULT_DP_CONE = DPCone.PLANE_STRAIN
+DEFAULT_DP_CONE = DPCone.SIMPLE_SHEAR
+DEFAULT_FLIP = 0.99  # FLIP fraction of the particle velocity update (0: APIC alone)
 
 
 class Shape(Enum):
@@ -77,10 +83,12 @@ class Material:
     @property
     def dp_slope_m(self) -> float:
         """Cone slope M = q / p (q = sqrt(3/2) |dev tau|, p = -tr(tau) / 3) for dp_cone."""
-        s = math.sin(math.radians(self.friction_angle_deg))
+        phi = math.radians(self.friction_angle_deg)
+        if self.dp_cone is DPCone.SIMPLE_SHEAR:
+            return math.sqrt(3.0) * math.tan(phi)
         if self.dp_cone is DPCone.COMPRESSION:
-            return 6.0 * s / (3.0 - s)
-        return math.sqrt(3.0) * s
+            return 6.0 * math.sin(phi) / (3.0 - math.sin(phi))
+        return math.sqrt(3.0) * math.sin(phi)
 
     @property
     def dp_alpha(self) -> float:
@@ -131,6 +139,7 @@ class Scene:
     duration_s: float
     output_interval_s: float
     cfl: float
+    flip: float = DEFAULT_FLIP
     toml_text: str = field(default="", repr=False)
 
     @property
@@ -273,7 +282,7 @@ def _parse_wall(t: dict, i: int, size_m) -> Wall:
 def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scene:
     """Build a Scene from a parsed TOML document."""
     _check_keys(data, {"name", "description", "domain", "material", "particles", "body",
-                       "boundary", "wall", "time", "gravity_m_s2"}, "")
+                       "boundary", "wall", "time", "numerics", "gravity_m_s2"}, "")
     domain = data.get("domain")
     if not isinstance(domain, dict):
         raise SceneError("missing table 'domain'")
@@ -325,6 +334,11 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
     cfl = _get(time, "cfl", "time", "float", default=DEFAULT_CFL)
     if not 0.0 < cfl <= MAX_CFL:
         raise SceneError(f"key 'time.cfl' must be in (0, {MAX_CFL}], got {cfl}")
+    numerics = data.get("numerics", {})
+    _check_keys(numerics, {"flip"}, "numerics")
+    flip = _get(numerics, "flip", "numerics", "float", default=DEFAULT_FLIP)
+    if not 0.0 <= flip <= 1.0:
+        raise SceneError(f"key 'numerics.flip' must be in [0, 1], got {flip}")
     gravity = _get(data, "gravity_m_s2", "", "vec3", default=DEFAULT_GRAVITY_M_S2)
     return Scene(
         name=_get(data, "name", "", "str", default=name),
@@ -339,6 +353,7 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
         duration_s=duration,
         output_interval_s=interval,
         cfl=cfl,
+        flip=flip,
         toml_text=toml_text,
     )
 

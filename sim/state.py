@@ -12,11 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.kernels import permute_particles
+from sim.kernels import GRID_FIELDS, permute_particles
 from sim.scene import Scene, Shape
 
 GRID_PAD_NODES = 2  # ghost nodes beyond each domain face (stencil reach + clamp margin)
-GRID_FIELDS = 4  # per node: momentum/velocity x, y, z (kg m/s, then m/s) and mass (kg)
 
 
 @dataclass
@@ -51,7 +50,7 @@ class ParticleState:
             out = self._spare.get(name)
             if (out is None or out.shape != a.shape or out.dtype != a.dtype
                     or not out.flags.writeable):
-                out = np.empty_like(a)
+                out = np.empty_like(a, order="C")
             src.append(a.reshape(n, -1))
             dst.append(out.reshape(n, -1))
             self._spare[name] = a
@@ -131,12 +130,13 @@ def seed_particles(scene: Scene) -> ParticleState:
         raise ValueError(f"scene {scene.name!r} seeds no particles (bodies smaller than the "
                          f"particle spacing {s} m?)")
     vol = s**3
-    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+    # every array C-contiguous: the kernels are compiled per layout, and two layouts of the
+    # same state (the concatenated broadcasts were Fortran-ordered) round differently
     return ParticleState(
         x=x,
-        v=np.array(np.concatenate(vels, axis=0), dtype=np.float64),
+        v=np.ascontiguousarray(np.concatenate(vels, axis=0), dtype=np.float64),
         C=np.zeros((n, 3, 3)),
-        F=np.array(eye, dtype=np.float64),  # a copy: for n = 1 a broadcast is contiguous
+        F=np.tile(np.eye(3), (n, 1, 1)),
         tau=np.zeros((n, 3, 3)),
         mass=np.full(n, scene.material.density_kg_m3 * vol),
         vol0=np.full(n, vol),

@@ -192,7 +192,10 @@ def test_dp_alpha_formula():
         s = math.sin(math.radians(phi))
         m = Material(1800.0, 1e6, 0.3, phi, DPCone.COMPRESSION)
         assert m.dp_alpha == pytest.approx(math.sqrt(2 / 3) * 2 * s / (3 - s))  # Klár 2016
-        assert Material(1800.0, 1e6, 0.3, phi).dp_alpha == pytest.approx(math.sqrt(2) * s / 3)
+        plane = Material(1800.0, 1e6, 0.3, phi, DPCone.PLANE_STRAIN)
+        assert plane.dp_alpha == pytest.approx(math.sqrt(2) * s / 3)
+        tan = math.tan(math.radians(phi))  # the default cone: sqrt(J2) <= tan(phi) p
+        assert Material(1800.0, 1e6, 0.3, phi).dp_alpha == pytest.approx(math.sqrt(2) * tan / 3)
 
 
 @pytest.mark.parametrize("cone", list(DPCone))
@@ -200,7 +203,9 @@ def test_plane_strain_yield_matches_mohr_coulomb(cone):
     """Yielded plane-strain state (intermediate principal stress = mean stress, as the
     non-dilatant flow requires for eps_yy = 0): the Mohr-Coulomb angle sin(phi_mc) =
     (s1 - s3) / -(s1 + s3) equals phi for PLANE_STRAIN, and exceeds it (about 44 deg for
-    phi = 30 deg) for Klár's COMPRESSION cone."""
+    phi = 30 deg) for Klár's COMPRESSION cone. The same ratio is the shear over normal
+    stress of simple shear under pressure (principal stresses -p + t, -p, -p - t): it is
+    tan(phi) for SIMPLE_SHEAR."""
     phi = 30.0
     mat = Material(1800.0, 1e6, 0.3, phi, cone)
     lam, mu, alpha = mat.lame_lambda_pa, mat.shear_modulus_pa, mat.dp_alpha
@@ -209,7 +214,9 @@ def test_plane_strain_yield_matches_mohr_coulomb(cone):
     eps = dp_project_numpy(sig, lam, mu, alpha)[0]
     t = 2.0 * mu * eps + lam * eps.sum()  # principal Kirchhoff stress, Pa
     sin_mc = (t[0] - t[2]) / -(t[0] + t[2])
-    expect = math.sin(math.radians(phi)) if cone is DPCone.PLANE_STRAIN else mat.dp_slope_m / 3**0.5
+    expect = {DPCone.PLANE_STRAIN: math.sin(math.radians(phi)),
+              DPCone.SIMPLE_SHEAR: math.tan(math.radians(phi)),
+              DPCone.COMPRESSION: mat.dp_slope_m / 3**0.5}[cone]
     assert sin_mc == pytest.approx(expect, rel=DP_TOL * 1e3)
     assert t[1] == pytest.approx(t.mean(), rel=DP_TOL * 1e3)
     if cone is DPCone.COMPRESSION:

@@ -11,9 +11,11 @@ several sands/grains. With a = H0/L0 (initial height over length):
 
 (Lajeunesse, Monnier & Homsy, Phys. Fluids 17, 103302 (2005) report the same regimes.)
 The simulated channel is quasi-2D: smooth side walls, a few cells wide, so the sand
-deforms in plane strain and the Drucker-Prager cone is fitted to the Mohr-Coulomb angle in
-plane strain (`dp_cone = "plane_strain"`, the default; see sim/README.md). Run with
-`pytest -m slow tests/test_sim_validation.py -s` to print the measured numbers.
+deforms in plane strain. The scene defaults are used: the Drucker-Prager cone yields in
+simple shear at shear / normal stress = tan(phi) (`dp_cone = "simple_shear"`) and the
+particle velocity update is 99 % FLIP, 1 % PIC (`[numerics] flip = 0.99`); see
+sim/README.md for why. Run with `pytest -m slow tests/test_sim_validation.py -s` to print
+the measured numbers.
 """
 
 import math

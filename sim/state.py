@@ -68,7 +68,7 @@ class GridState:
 
     origin: np.ndarray  # [3] int64, global index of local node (0, 0, 0)
     dx: float  # m, cell size
-    data: np.ndarray  # [nx, ny, nz, 4] float64: momentum (kg m/s) -> velocity (m/s), mass kg
+    data: np.ndarray  # [nx, ny, nz, GRID_FIELDS] float64, see sim.kernels: velocity, mass, dv
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sim.scene import Scene, loads_scene
+from sim.scene import DEFAULT_DP_CONE, DEFAULT_FLIP, Scene, loads_scene
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ class ColumnSpec:
     youngs_modulus_pa: float = 1.0e6
     poisson_ratio: float = 0.3
     friction_angle_deg: float = 30.0
-    dp_cone: str = "simple_shear"  # sim.scene.DPCone value
+    dp_cone: str = DEFAULT_DP_CONE.value  # sim.scene.DPCone value
     floor_friction: float = 0.5
     side_friction: float = 0.0
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
@@ -34,7 +34,7 @@ class ColumnSpec:
     duration_s: float = 0.2
     output_interval_s: float = 0.02
     cfl: float = 0.3
-    flip: float = 0.99  # FLIP fraction of the particle velocity update (0: APIC)
+    flip: float = DEFAULT_FLIP  # FLIP fraction of the particle velocity update (0: APIC)
 
     @property
     def aspect_ratio(self) -> float:

@@ -93,9 +93,10 @@ def reference_step(s: ReferenceState, *, mass, vol0, grid_shape, origin, dx, dt,
     c_new = np.zeros_like(s.C)
     for off in _offsets():
         wt = w[off[0], :, 0] * w[off[1], :, 1] * w[off[2], :, 2]
-        gv = vel[tuple((base + off).T)]
+        idx = tuple((base + off).T)
+        gv = vel[idx]
         v_new += wt[:, None] * gv
-        dv += wt[:, None] * dvel[tuple((base + off).T)]
+        dv += wt[:, None] * dvel[idx]
         c_new += (APIC_D_INV / dx) * wt[:, None, None] * np.einsum("ni,nj->nij", gv,
                                                                    off - fx)
     x_new = np.clip(s.x + dt * v_new, lo, hi)

@@ -46,6 +46,8 @@ def test_cylinder_is_round():
     ("cell_size_m = 0.02", 'cell_size_m = "fine"', "domain.cell_size_m"),
     ("duration_s = 0.2", "duration_s = 0.0", "time.duration_s"),
     ("cfl = 0.3", "cfl = 0.9", "time.cfl"),
+    ("flip = 0.99", "flip = 1.5", "numerics.flip"),
+    ("flip = 0.99", "flip_ratio = 0.99", "numerics.flip_ratio"),
     ("per_cell_per_axis = 2", "per_cell_per_axis = 2.5", "particles.per_cell_per_axis"),
     ("hi_m = [0.1, 0.04, 0.1]", "hi_m = [0.5, 0.04, 0.1]", "body[0].hi_m"),
     ("y_min = 0.0", "y_min = -0.1", "boundary.y_min"),

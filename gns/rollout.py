@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from gns.graph import radius_graph
+from gns.metrics import deposit, relative_errors
 
 ESCAPE_RADII = 1.0  # connectivity radii outside the domain that count as leaving it
 
@@ -142,9 +143,11 @@ def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndar
     return out, timing
 
 
-def rollout_error(model, traj, frames: int, device: str = "cpu") -> tuple[float, int]:
-    """Mean position error (m) against the trajectory over a rollout of up to `frames`
-    frames, and the frames predicted (fewer when the rollout diverged)."""
+def rollout_error(model, traj, frames: int, device: str = "cpu") -> dict:
+    """A validation rollout of up to `frames` frames against the trajectory: error_m (mean
+    position error, m), frames (predicted; fewer when the rollout diverged) and, when it
+    reached the trajectory's last frame, the relative deposit errors (fractions) runout and
+    displacement_range of gns.metrics (None otherwise)."""
     c1 = model.config.input_velocities + 1
     frames = min(frames, traj.positions.shape[0] - c1)
     try:
@@ -154,5 +157,8 @@ def rollout_error(model, traj, frames: int, device: str = "cpu") -> tuple[float,
         pred = exc.positions
     done = len(pred) - c1
     true = traj.positions[:len(pred)]
-    return float(np.linalg.norm(pred[c1:] - true[c1:], axis=2).mean()) if done else float(
-        "inf"), done
+    err = float(np.linalg.norm(pred[c1:] - true[c1:], axis=2).mean()) if done else float("inf")
+    rel = (relative_errors(deposit(pred), deposit(traj.positions))
+           if len(pred) == traj.positions.shape[0] else {})
+    return {"error_m": err, "frames": done, "runout": rel.get("runout"),
+            "displacement_range": rel.get("displacement_range")}

@@ -38,6 +38,7 @@ class TrainConfig:
     val_every: int = 2_000  # steps between validation rollouts
     val_frames: int = 100  # rollout length of a validation rollout
     ckpt_every: int = 500
+    keep_validated: bool = False  # also keep a copy OUT_step<N>.pt at every validation
     seed: int = 0
 
 
@@ -202,15 +203,26 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
             model.eval()
             scores = [rollout_error(model, t, cfg.val_frames, device) for t in val_trajs]
             model.train()
-            err = float(np.mean([e for e, _ in scores]))
-            reached = min(f for _, f in scores)
+            err = float(np.mean([sc["error_m"] for sc in scores]))
+            reached = min(sc["frames"] for sc in scores)
             want = min(cfg.val_frames, min(t.positions.shape[0] for t in val_trajs)
                        - model_config.input_velocities - 1)
-            history.append({"step": step, "val_error_m": err, "val_frames": reached,
-                            "val_complete": reached >= want})
+            entry = {"step": step, "val_error_m": err, "val_frames": reached,
+                     "val_complete": reached >= want}
+            deposit_note = ""
+            if all(sc["runout"] is not None for sc in scores):  # full-length rollouts
+                for key in ("runout", "displacement_range"):
+                    entry[f"val_{key}_error_max"] = max(sc[key] for sc in scores)
+                deposit_note = (f", worst scene runout {100 * entry['val_runout_error_max']:.1f}"
+                                f" %, displacement range "
+                                f"{100 * entry['val_displacement_range_error_max']:.1f} %")
+            history.append(entry)
             print(f"train: step {step} validation rollout mean position error {err:.5f} m"
+                  + deposit_note
                   + ("" if reached >= want else f" (a rollout diverged at frame {reached})"),
                   file=log, flush=True)
+            if cfg.keep_validated:
+                save(out.with_name(f"{out.stem}_step{step}.pt"))
             if reached >= want and err < best:
                 best = err
                 save(out.with_suffix(".best.pt"))

@@ -42,7 +42,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     tc = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, lr_final=args.lr_final,
                      lr_decay_steps=args.lr_decay_steps, noise_std=args.noise_std,
                      val_every=args.val_every, val_frames=args.val_frames,
-                     ckpt_every=args.ckpt_every, seed=args.seed)
+                     ckpt_every=args.ckpt_every, keep_validated=args.keep_validated,
+                     seed=args.seed)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     device=args.device)
@@ -215,6 +216,9 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--val-every", type=int, default=2000, help="steps between validations")
     q.add_argument("--val-frames", type=int, default=100, help="frames per validation rollout")
     q.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints")
+    q.add_argument("--keep-validated", action="store_true",
+                   help="also keep OUT_step<N>.pt at every validation, to choose a checkpoint "
+                        "afterwards by the logged runout and displacement-range errors")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", help="cpu or cuda (default: cuda when available)")

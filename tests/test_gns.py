@@ -153,9 +153,16 @@ def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
     assert ckpt["stats"]["acc_std"][0] == pytest.approx(
         math.hypot(meta["acc_std"][0], tc.noise_std))
     assert any("val_error_m" in h for h in ckpt["history"])
+    assert not any("val_runout_error_max" in h for h in ckpt["history"])  # partial rollouts
     complete = [h for h in ckpt["history"] if h.get("val_complete")]
     assert (tmp_path / "m.best.pt").exists() == bool(complete)
-    train(path, out, mc, replace(tc, steps=9), resume=out, device="cpu")
+    train(path, out, mc, replace(tc, steps=9, val_frames=10_000, keep_validated=True),
+          resume=out, device="cpu")
+    assert (tmp_path / "m_step9.pt").exists() and not (tmp_path / "m_step6.pt").exists()
+    full = [h for h in load_checkpoint(out)[1]["history"] if h.get("step") == 9
+            and "val_error_m" in h]
+    assert full[0]["val_runout_error_max"] >= 0.0  # full-length rollouts: deposit errors
+    assert full[0]["val_displacement_range_error_max"] >= 0.0
     model2, ckpt2 = load_checkpoint(out)
     assert ckpt2["step"] == 9
     traj = load_split(path, "valid")[0]

@@ -2,13 +2,8 @@
 the steps its schedule asks for, and flow statistics on a fixed cadence of simulated time,
 without ever blocking the simulation.
 
-* `cull` picks the particles inside the requested regions (all when none), keeps every
-  `decimate`-th of them by original id (`pid % decimate == 0`), and computes only the
-  requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
-  `particle_bytes`.
-* `flow_stats` sums up a rank's particles for a `Stats` message (minority/{run}/stats):
-  count, sum of |v|^2, max |v|, max |x - x0|, and the speed histograms of the particles
-  inside the regions of the spec's open windows and elsewhere.
+* What a chunk and a Stats message carry (`cull`, `flow_stats`) is in sim.payload; the
+  bounded queue to the sender thread (`Outbox`) in sim.outbox.
 * `RankPublisher.publish` runs at every sim step. It keeps the time the simulation reported
   for the previous step and passes it to `Spec.request(step, time_s, prev_time_s)` and in
   the chunk (`Chunk.prev_time_s`), so windows with an `every_s` cadence fire at exactly the
@@ -39,7 +34,6 @@ without ever blocking the simulation.
 
 from __future__ import annotations
 
-import collections
 import copy
 import json
 import math
@@ -50,32 +44,35 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-import numpy as np
 import zenoh
 
 from protocol import keys
 from protocol.errors import ProtocolError, SpecError
 from protocol.messages import (
-    SPEED_BINS,
-    SPEED_EDGES_M_S,
     Chunk,
     Event,
     EventKind,
-    Stats,
     decode_as,
 )
 from protocol.session import NetworkOptions, QoS, Role, make_config, put
-from protocol.spec import DataRequest, Region, Spec, inside_mask
+from protocol.spec import DataRequest, Spec
 from protocol.view import Window
+from sim.outbox import (
+    CHUNK,
+    CONTROL,
+    OUTBOX_BYTES,
+    OUTBOX_CHUNKS,
+    OUTBOX_STATS,
+    STATS,
+    Outbox,
+    OutboxItem,
+)
+from sim.payload import SIM_FIELDS, cull, flow_stats
 from sim.state import ParticleState
-from sim.visibility import visible_mask
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
 SPEC_RETRY_S = 0.2  # s between spec queries while waiting for a starting server
 DRAIN_TIMEOUT_S = 5.0  # at close: wait this long for the outbox to empty
-OUTBOX_CHUNKS = 4  # chunks queued for the sender at most (the oldest is dropped)
-OUTBOX_BYTES = 256 * 1024 * 1024  # and at most this many bytes of them
-OUTBOX_STATS = 64  # Stats messages queued for the sender at most (the oldest is dropped)
 STATS_EVERY_S = 0.005  # s of simulated time between a rank's Stats messages; 0: none
 SENDER_POLL_S = 0.1
 BLOCK_TIMEOUT_S = 2.0  # zenoh gives a blocked put up after this long (our client sessions)
@@ -83,125 +80,6 @@ BLOCK_TIMEOUT_KEY = "transport/link/tx/queue/congestion_control/block/wait_befor
 STALL_FRACTION = 0.9  # a put that took this share of the block timeout was given up
 PROBE_INTERVAL_S = 1.0  # while stalled: ask the server for the spec this often
 PROBE_TIMEOUT_S = 1.0
-
-
-@dataclass(frozen=True)
-class SimField:
-    """A particle field the simulation can send: [n] or [n, components], its wire dtype."""
-
-    components: int  # 1: [n]
-    dtype: str
-    unit: str
-    description: str
-
-
-SIM_FIELDS: dict[str, SimField] = {
-    "displacement": SimField(3, "<f4", "m", "x - x0, from the initial position"),
-    "displacement_magnitude": SimField(1, "<f4", "m", "|x - x0|"),
-    "velocity": SimField(3, "<f4", "m/s", "particle velocity"),
-    "velocity_magnitude": SimField(1, "<f4", "m/s", "|v|"),
-    "pressure": SimField(1, "<f4", "Pa", "-tr(tau) / 3, Kirchhoff mean stress (compression > 0)"),
-    "id": SimField(1, "<i8", "1", "original particle id (row of the HDF5 output)"),
-}
-POSITION_BYTES = 12  # positions [n, 3] float32
-
-
-def particle_bytes(fields) -> int:
-    """Wire bytes per particle of a chunk with positions and `fields` (known ones)."""
-    return POSITION_BYTES + sum(SIM_FIELDS[f].components * np.dtype(SIM_FIELDS[f].dtype).itemsize
-                                for f in fields if f in SIM_FIELDS)
-
-
-def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict[str, np.ndarray]:
-    """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
-    field the simulation knows (unknown names are skipped; the caller reports them), of
-    the m particles inside the request's regions (all n when it has none) whose original
-    id is a multiple of the request's `decimate` and, when the request names views to cull
-    for, that may show in one of them as spheres of `radius_m` (m; sim.visibility)."""
-    keep = None if request.regions is None else inside_mask(ps.x, request.regions)
-    if request.decimate > 1:
-        every = ps.pid % request.decimate == 0
-        keep = every if keep is None else keep & every
-    idx = None if keep is None else np.flatnonzero(keep)
-    if request.visible_in and radius_m > 0.0:
-        rows = np.arange(ps.n) if idx is None else idx
-        x, pid = ps.x[rows], ps.pid[rows]
-        seen = np.zeros(len(rows), dtype=bool)
-        for view, regions in request.visible_in:
-            # among the particles the server draws in this view: its regions, its stride
-            own = np.ones(len(rows), dtype=bool) if regions is None else inside_mask(x, regions)
-            if view.decimate > 1:
-                own &= pid % view.decimate == 0
-            sub = np.flatnonzero(own)
-            seen[sub[visible_mask(x[sub], view, radius_m)]] = True
-        idx = rows[seen]
-
-    def take(a: np.ndarray) -> np.ndarray:
-        return a if idx is None else a[idx]
-
-    x = take(ps.x)
-    out = {"positions": x.astype(np.float32)}
-    fields = set(request.fields)
-    d = x - take(ps.x0) if fields & {"displacement", "displacement_magnitude"} else None
-    v = take(ps.v) if fields & {"velocity", "velocity_magnitude"} else None
-    for name in request.fields:
-        if name in ("displacement", "displacement_magnitude"):
-            out[name] = (d if name == "displacement" else np.linalg.norm(d, axis=1)).astype(np.float32)
-        elif name in ("velocity", "velocity_magnitude"):
-            out[name] = (v if name == "velocity" else np.linalg.norm(v, axis=1)).astype(np.float32)
-        elif name == "pressure":
-            tau = take(ps.tau)
-            out[name] = (-(tau[:, 0, 0] + tau[:, 1, 1] + tau[:, 2, 2]) / 3.0).astype(np.float32)
-        elif name == "id":
-            out[name] = take(ps.pid).astype(np.int64)
-    return out
-
-
-# SPEED_EDGES_M_S with -inf and +inf around: bin i holds speeds in [_BIN_BOUNDS[i], _BIN_BOUNDS[i + 1])
-_BIN_BOUNDS = np.concatenate([[-np.inf], np.asarray(SPEED_EDGES_M_S), [np.inf]])
-
-
-def speed_bins(speed_m_s: np.ndarray) -> np.ndarray:
-    """[n] intp: the Stats histogram bin of each speed [n] (m/s, finite, >= 0); equal to
-    np.searchsorted(SPEED_EDGES_M_S, speed, side="right") (tested), at a third of its cost:
-    the edges are 10 per decade from 1e-4 m/s, so log10 gives the bin to within one, and
-    one comparison with each neighbouring edge makes it exact."""
-    with np.errstate(divide="ignore"):  # speed 0: log10 = -inf, bin 0
-        k = np.floor(10.0 * np.log10(speed_m_s))
-    k = np.clip(k + (1.0 - 10.0 * math.log10(SPEED_EDGES_M_S[0])), 0.0, SPEED_BINS - 1.0)
-    k = k.astype(np.intp)
-    k -= speed_m_s < _BIN_BOUNDS[k]
-    k += speed_m_s >= _BIN_BOUNDS[k + 1]
-    return k
-
-
-def flow_stats(run: str, rank: int, step: int, time_s: float, ps: ParticleState,
-               regions: tuple[Region, ...] | None) -> Stats:
-    """The Stats of a rank's particles at one step (time_s in s). `regions`: the spec's
-    `active_regions(time_s)`; None: every particle counts as inside (an open window needs
-    them all), (): none does (no window open, or no spec yet; windows_open is then False).
-    Vectorized: a few passes over [n] and [n, 3] arrays (about 0.3 ms at 13k particles)."""
-    v = ps.v
-    d = ps.x - ps.x0
-    speed_sq = np.einsum("ij,ij->i", v, v)  # [n] m^2/s^2
-    speed = np.sqrt(speed_sq)  # [n] m/s
-    n = speed.shape[0]
-    bins = speed_bins(speed)
-    every = np.bincount(bins, minlength=SPEED_BINS)
-    if regions is None:
-        hist_in, hist_out = every, np.zeros_like(every)
-    elif not regions:
-        hist_in, hist_out = np.zeros_like(every), every
-    else:
-        hist_in = np.bincount(bins[inside_mask(ps.x, regions)], minlength=SPEED_BINS)
-        hist_out = every - hist_in
-    return Stats(run, rank, step, float(time_s), n,
-                 speed_sq_sum_m2_s2=float(speed_sq.sum()),
-                 max_speed_m_s=float(speed.max()) if n else 0.0,
-                 max_displacement_m=(math.sqrt(float(np.einsum("ij,ij->i", d, d).max()))
-                                     if n else 0.0),
-                 windows_open=regions != (), hist_in_regions=hist_in.tolist(),
-                 hist_elsewhere=hist_out.tolist())
 
 
 def record_path(path: Path, rank: int) -> Path:
@@ -257,103 +135,6 @@ class PublishStats:
     def dropped(self) -> int:
         return (self.dropped_no_server + self.dropped_outbox + self.dropped_at_exit
                 + self.dropped_stalled + self.failed)
-
-
-CHUNK, STATS, CONTROL = "chunk", "stats", "control"  # kinds of outbox items
-
-
-@dataclass
-class _Item:
-    key: str
-    payload: bytearray
-    kind: str  # CHUNK, STATS or CONTROL (spec, events)
-    particles: int = 0
-    publish: bool = True  # False: only recorded (the spec the rank follows)
-
-
-class Outbox:
-    """A bounded FIFO between the simulation thread and the sender: at most `max_chunks`
-    chunks and `max_bytes` of chunk payload (but always the newest chunk), and at most
-    `max_stats` Stats messages; a full outbox drops its oldest item of the kind that
-    overflows (the newest data is what a viewer wants). Control messages (spec, events)
-    are few and small and always enter."""
-
-    def __init__(self, max_chunks: int, max_bytes: int, max_stats: int = OUTBOX_STATS):
-        self.max_chunks, self.max_bytes, self.max_stats = max_chunks, max_bytes, max_stats
-        self._items: collections.deque[_Item] = collections.deque()
-        self._cond = threading.Condition()
-        self._chunks = 0
-        self._bytes = 0
-        self._stats = 0
-        self.busy = False  # the sender holds an item
-
-    def put(self, item: _Item) -> int:
-        """Enqueue; returns how many items of its kind were dropped to make room."""
-        dropped = 0
-        with self._cond:
-            if item.kind == CHUNK:
-                while self._chunks and (self._chunks >= self.max_chunks
-                                        or self._bytes + len(item.payload) > self.max_bytes):
-                    self._drop_oldest(CHUNK)
-                    dropped += 1
-                self._chunks += 1
-                self._bytes += len(item.payload)
-            elif item.kind == STATS:
-                while self._stats and self._stats >= self.max_stats:
-                    self._drop_oldest(STATS)
-                    dropped += 1
-                self._stats += 1
-            self._items.append(item)
-            self._cond.notify()
-        return dropped
-
-    def _count(self, item: _Item, sign: int) -> None:
-        if item.kind == CHUNK:
-            self._chunks += sign
-            self._bytes += sign * len(item.payload)
-        elif item.kind == STATS:
-            self._stats += sign
-
-    def _drop_oldest(self, kind: str) -> None:
-        for i, old in enumerate(self._items):
-            if old.kind == kind:
-                del self._items[i]
-                self._count(old, -1)
-                return
-
-    def take(self, timeout: float) -> _Item | None:
-        with self._cond:
-            if not self._items:
-                self._cond.wait(timeout)
-            if not self._items:
-                return None
-            item = self._items.popleft()
-            self._count(item, -1)
-            self.busy = True
-            return item
-
-    def done(self) -> None:
-        with self._cond:
-            self.busy = False
-            self._cond.notify_all()
-
-    def wait_empty(self, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._items or self.busy:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-            return True
-
-    def discard_chunks(self) -> tuple[int, int]:
-        """Drop every queued chunk and Stats message; returns how many of each."""
-        with self._cond:
-            n = (self._chunks, self._stats)
-            self._items = collections.deque(i for i in self._items if i.kind == CONTROL)
-            self._chunks = self._bytes = self._stats = 0
-            return n
 
 
 # Data priority and BLOCK: see the module docstring (the outbox is the pressure valve).
@@ -447,7 +228,7 @@ class RankPublisher:
             self._token = self.session.liveliness().declare_token(keys.rank_token(run, self.rank))
             self._spec_sub = self.session.declare_subscriber(keys.spec(run), self._on_spec)
         if spec is not None:  # the server serves the spec; the record notes which one we follow
-            self._outbox.put(_Item(keys.spec(run), spec.encode(), CONTROL, publish=False))
+            self._outbox.put(OutboxItem(keys.spec(run), spec.encode(), CONTROL, publish=False))
         self._thread = threading.Thread(target=self._send_loop, name=f"minority-send-{self.rank}",
                                         daemon=True)
         self._thread.start()
@@ -459,7 +240,7 @@ class RankPublisher:
             return
         if spec.run == self.run and spec != self.spec:
             self.spec = spec
-            self._outbox.put(_Item(keys.spec(self.run), spec.encode(), CONTROL,
+            self._outbox.put(OutboxItem(keys.spec(self.run), spec.encode(), CONTROL,
                                    publish=False))
 
     # --- per step -------------------------------------------------------------------------
@@ -504,7 +285,7 @@ class RankPublisher:
         fields = cull(ps, request, radius)
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
                       self.bounds_m, fields, prev_time_s=prev)
-        item = _Item(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)
+        item = OutboxItem(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)
         dropped = self._outbox.put(item)
         with self._lock:
             self.stats.dropped_outbox += dropped
@@ -523,7 +304,7 @@ class RankPublisher:
         spec = self.spec
         regions = () if spec is None else spec.active_regions(time_s)
         message = flow_stats(self.run, self.rank, step, time_s, ps, regions)
-        dropped = self._outbox.put(_Item(keys.stats(self.run), message.encode(), STATS))
+        dropped = self._outbox.put(OutboxItem(keys.stats(self.run), message.encode(), STATS))
         with self._lock:
             self.stats.stats_dropped += dropped
             self.stats.stats_s += time.perf_counter() - t0
@@ -532,7 +313,7 @@ class RankPublisher:
         if self.run is None:
             return
         ev = Event(self.run, kind, self.rank, message[:4000], detail or {})
-        self._outbox.put(_Item(keys.event(self.run), ev.encode(), CONTROL))
+        self._outbox.put(OutboxItem(keys.event(self.run), ev.encode(), CONTROL))
 
     # --- the sender thread ------------------------------------------------------------------
     def _send_loop(self) -> None:
@@ -563,7 +344,7 @@ class RankPublisher:
             finally:
                 self._outbox.done()
 
-    def _send(self, item: _Item) -> str:
+    def _send(self, item: OutboxItem) -> str:
         """Put one message; returns "sent", "no_server", "stalled" or "failed"."""
         if self.session is None:
             return "no_server"

@@ -189,7 +189,8 @@ def _start_publishing(config, scene, sim, comm, log):
         return None, config.run, None
     from protocol.session import shm_pool_for
     from protocol.spec import Spec
-    from sim.publish import SIM_FIELDS, RankPublisher, particle_bytes
+    from sim.payload import SIM_FIELDS, particle_bytes
+    from sim.publish import RankPublisher
 
     rank, ranks = comm.Get_rank(), comm.Get_size()
     bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))

@@ -27,19 +27,9 @@ from protocol.view import Window
 from protocol.wire import decode
 from render_server.daemon import RenderServer, ServerOptions
 from sim.driver import Simulator
-from sim.publish import (
-    CONTROL,
-    SIM_FIELDS,
-    STATS,
-    Outbox,
-    PublishOptions,
-    _Item,
-    cull,
-    flow_stats,
-    particle_bytes,
-    record_path,
-    speed_bins,
-)
+from sim.outbox import CONTROL, STATS, Outbox, OutboxItem
+from sim.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
+from sim.publish import PublishOptions, record_path
 from sim.ranks import RankRunConfig, run_ranks
 from sim.scene import builtin_scene_path, load_scene
 from sim.state import PARTICLE_FIELDS, seed_particles
@@ -373,9 +363,9 @@ def test_flow_stats_match_a_hand_computation():
 
 def test_the_outbox_bounds_stats_on_their_own():
     box = Outbox(max_chunks=4, max_bytes=1 << 20, max_stats=2)
-    puts = [box.put(_Item(keys.stats(RUN), bytearray(b"s%d" % i), STATS)) for i in range(3)]
+    puts = [box.put(OutboxItem(keys.stats(RUN), bytearray(b"s%d" % i), STATS)) for i in range(3)]
     assert puts == [0, 0, 1]  # the oldest made room
-    assert box.put(_Item(keys.event(RUN), bytearray(b"e"), CONTROL)) == 0
+    assert box.put(OutboxItem(keys.event(RUN), bytearray(b"e"), CONTROL)) == 0
     taken = []
     for _ in range(3):
         taken.append(bytes(box.take(1.0).payload))

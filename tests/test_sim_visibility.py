@@ -9,7 +9,7 @@ import pytest
 from protocol.errors import SpecError
 from protocol.spec import Camera, Region, Spec, View, Window, inside_mask
 from render_server.render import prepare, render
-from sim.publish import cull
+from sim.payload import cull
 from sim.state import ParticleState
 from sim.visibility import visible_mask
 

@@ -1,0 +1,142 @@
+"""What a rank's messages carry: the culled particle fields of a chunk and the flow
+statistics of a Stats message.
+
+* `cull` picks the particles inside the requested regions (all when none), keeps every
+  `decimate`-th of them by original id (`pid % decimate == 0`), and computes only the
+  requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
+  `particle_bytes`.
+* `flow_stats` sums up a rank's particles for a `Stats` message (minority/{run}/stats):
+  count, sum of |v|^2, max |v|, max |x - x0|, and the speed histograms of the particles
+  inside the regions of the spec's open windows and elsewhere.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats
+from protocol.spec import DataRequest, Region, inside_mask
+from sim.state import ParticleState
+from sim.visibility import visible_mask
+
+
+@dataclass(frozen=True)
+class SimField:
+    """A particle field the simulation can send: [n] or [n, components], its wire dtype."""
+
+    components: int  # 1: [n]
+    dtype: str
+    unit: str
+    description: str
+
+
+SIM_FIELDS: dict[str, SimField] = {
+    "displacement": SimField(3, "<f4", "m", "x - x0, from the initial position"),
+    "displacement_magnitude": SimField(1, "<f4", "m", "|x - x0|"),
+    "velocity": SimField(3, "<f4", "m/s", "particle velocity"),
+    "velocity_magnitude": SimField(1, "<f4", "m/s", "|v|"),
+    "pressure": SimField(1, "<f4", "Pa", "-tr(tau) / 3, Kirchhoff mean stress (compression > 0)"),
+    "id": SimField(1, "<i8", "1", "original particle id (row of the HDF5 output)"),
+}
+POSITION_BYTES = 12  # positions [n, 3] float32
+
+
+def particle_bytes(fields) -> int:
+    """Wire bytes per particle of a chunk with positions and `fields` (known ones)."""
+    return POSITION_BYTES + sum(SIM_FIELDS[f].components * np.dtype(SIM_FIELDS[f].dtype).itemsize
+                                for f in fields if f in SIM_FIELDS)
+
+
+def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict[str, np.ndarray]:
+    """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
+    field the simulation knows (unknown names are skipped; the caller reports them), of
+    the m particles inside the request's regions (all n when it has none) whose original
+    id is a multiple of the request's `decimate` and, when the request names views to cull
+    for, that may show in one of them as spheres of `radius_m` (m; sim.visibility)."""
+    keep = None if request.regions is None else inside_mask(ps.x, request.regions)
+    if request.decimate > 1:
+        every = ps.pid % request.decimate == 0
+        keep = every if keep is None else keep & every
+    idx = None if keep is None else np.flatnonzero(keep)
+    if request.visible_in and radius_m > 0.0:
+        rows = np.arange(ps.n) if idx is None else idx
+        x, pid = ps.x[rows], ps.pid[rows]
+        seen = np.zeros(len(rows), dtype=bool)
+        for view, regions in request.visible_in:
+            # among the particles the server draws in this view: its regions, its stride
+            own = np.ones(len(rows), dtype=bool) if regions is None else inside_mask(x, regions)
+            if view.decimate > 1:
+                own &= pid % view.decimate == 0
+            sub = np.flatnonzero(own)
+            seen[sub[visible_mask(x[sub], view, radius_m)]] = True
+        idx = rows[seen]
+
+    def take(a: np.ndarray) -> np.ndarray:
+        return a if idx is None else a[idx]
+
+    x = take(ps.x)
+    out = {"positions": x.astype(np.float32)}
+    fields = set(request.fields)
+    d = x - take(ps.x0) if fields & {"displacement", "displacement_magnitude"} else None
+    v = take(ps.v) if fields & {"velocity", "velocity_magnitude"} else None
+    for name in request.fields:
+        if name in ("displacement", "displacement_magnitude"):
+            out[name] = (d if name == "displacement" else np.linalg.norm(d, axis=1)).astype(np.float32)
+        elif name in ("velocity", "velocity_magnitude"):
+            out[name] = (v if name == "velocity" else np.linalg.norm(v, axis=1)).astype(np.float32)
+        elif name == "pressure":
+            tau = take(ps.tau)
+            out[name] = (-(tau[:, 0, 0] + tau[:, 1, 1] + tau[:, 2, 2]) / 3.0).astype(np.float32)
+        elif name == "id":
+            out[name] = take(ps.pid).astype(np.int64)
+    return out
+
+
+# SPEED_EDGES_M_S with -inf and +inf around: bin i holds speeds in [_BIN_BOUNDS[i], _BIN_BOUNDS[i + 1])
+_BIN_BOUNDS = np.concatenate([[-np.inf], np.asarray(SPEED_EDGES_M_S), [np.inf]])
+
+
+def speed_bins(speed_m_s: np.ndarray) -> np.ndarray:
+    """[n] intp: the Stats histogram bin of each speed [n] (m/s, finite, >= 0); equal to
+    np.searchsorted(SPEED_EDGES_M_S, speed, side="right") (tested), at a third of its cost:
+    the edges are 10 per decade from 1e-4 m/s, so log10 gives the bin to within one, and
+    one comparison with each neighbouring edge makes it exact."""
+    with np.errstate(divide="ignore"):  # speed 0: log10 = -inf, bin 0
+        k = np.floor(10.0 * np.log10(speed_m_s))
+    k = np.clip(k + (1.0 - 10.0 * math.log10(SPEED_EDGES_M_S[0])), 0.0, SPEED_BINS - 1.0)
+    k = k.astype(np.intp)
+    k -= speed_m_s < _BIN_BOUNDS[k]
+    k += speed_m_s >= _BIN_BOUNDS[k + 1]
+    return k
+
+
+def flow_stats(run: str, rank: int, step: int, time_s: float, ps: ParticleState,
+               regions: tuple[Region, ...] | None) -> Stats:
+    """The Stats of a rank's particles at one step (time_s in s). `regions`: the spec's
+    `active_regions(time_s)`; None: every particle counts as inside (an open window needs
+    them all), (): none does (no window open, or no spec yet; windows_open is then False).
+    Vectorized: a few passes over [n] and [n, 3] arrays (about 0.3 ms at 13k particles)."""
+    v = ps.v
+    d = ps.x - ps.x0
+    speed_sq = np.einsum("ij,ij->i", v, v)  # [n] m^2/s^2
+    speed = np.sqrt(speed_sq)  # [n] m/s
+    n = speed.shape[0]
+    bins = speed_bins(speed)
+    every = np.bincount(bins, minlength=SPEED_BINS)
+    if regions is None:
+        hist_in, hist_out = every, np.zeros_like(every)
+    elif not regions:
+        hist_in, hist_out = np.zeros_like(every), every
+    else:
+        hist_in = np.bincount(bins[inside_mask(ps.x, regions)], minlength=SPEED_BINS)
+        hist_out = every - hist_in
+    return Stats(run, rank, step, float(time_s), n,
+                 speed_sq_sum_m2_s2=float(speed_sq.sum()),
+                 max_speed_m_s=float(speed.max()) if n else 0.0,
+                 max_displacement_m=(math.sqrt(float(np.einsum("ij,ij->i", d, d).max()))
+                                     if n else 0.0),
+                 windows_open=regions != (), hist_in_regions=hist_in.tolist(),
+                 hist_elsewhere=hist_out.tolist())

@@ -5,9 +5,11 @@ checkpoints (model size, message-passing depth) rolled out on the scene at their
 spacing from the MPM's first frames, as `minority oracle rollout` does (run time includes
 that warm start), and the MPM itself on the same column at coarser grids. Each is scored by the
 relative error of runout, final height and displacement range (gns/metrics.py) against the
-target. Prints a JSON line per oracle:
+target, and by when it predicts the peak of the motion and the return to rest
+(gns/events.py: kinetic-energy peak, and back below 1 % of it), the event times the oracle
+schedules by. Prints a JSON line per oracle:
 {"bench": "surrogate", "oracle": .., "particles": N, "run_s": .., "runout_error": ..,
- "height_error": .., "displacement_range_error": ..}
+ "height_error": .., "displacement_range_error": .., "peak_s": .., "rest_s": ..}
 and writes OUT/surrogate.md (table) and OUT/surrogate.png (error against run time).
 MPM runs go to OUT/ and are reused when complete.
 """
@@ -26,6 +28,7 @@ import h5py
 import numpy as np
 import torch
 
+from gns.events import find_events
 from gns.metrics import deposit, relative_errors
 from gns.runtime import tune_allocator
 from gns.train import load_checkpoint
@@ -64,6 +67,17 @@ def positions(path: Path) -> np.ndarray:
         return f["positions"][: len(f["time"])]
 
 
+def event_times(path: Path | None = None, pos: np.ndarray | None = None,
+                frame_interval_s: float | None = None) -> dict:
+    """peak_s and rest_s (s) of an MPM run's HDF5 (path) or of a trajectory (pos, interval)."""
+    if path is not None:
+        with h5py.File(path, "r") as f:
+            t = f["time"][:]
+        pos, frame_interval_s = positions(path), float(t[1] - t[0])
+    ev = find_events(pos, frame_interval_s)
+    return {"peak_s": ev.peak_s, "rest_s": ev.runout_end_s}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("checkpoints", nargs="*", type=Path, help="GNS checkpoints")
@@ -84,7 +98,7 @@ def main() -> None:
     ref = deposit(positions(target_h5))
     rows = [{"oracle": f"target MPM dx={scene.cell_size_m}", "particles": positions(
         target_h5).shape[1], "run_s": target_s, **{f"{k}_error": 0.0 for k in (
-            "runout", "height", "displacement_range")}}]
+            "runout", "height", "displacement_range")}, **event_times(target_h5)}]
     if not args.no_mpm:
         text = path.read_text()
         for cell, ppc in COARSE:
@@ -95,7 +109,8 @@ def main() -> None:
             pos = positions(h5)
             err = relative_errors(deposit(pos), ref)
             rows.append({"oracle": f"MPM dx={cell} ppc={ppc}", "particles": pos.shape[1],
-                         "run_s": wall, **{f"{k}_error": v for k, v in err.items()}})
+                         "run_s": wall, **{f"{k}_error": v for k, v in err.items()},
+                         **event_times(h5)})
     for ck in args.checkpoints:  # the oracle's own path: `minority oracle rollout --start`
         t0 = time.perf_counter()
         pred = predict_scene(ck, path, start=args.start, log=sys.stderr)
@@ -107,7 +122,8 @@ def main() -> None:
                                f"step {meta['step']}"
                      f"{'' if args.start == 'mpm' else ' from rest'}",
                      "particles": pred.positions.shape[1], "run_s": wall,
-                     **{f"{k}_error": v for k, v in err.items()}})
+                     **{f"{k}_error": v for k, v in err.items()},
+                     **event_times(pos=pred.positions, frame_interval_s=pred.frame_interval_s)})
     for r in rows:
         print(json.dumps({"bench": "surrogate", **{k: round(v, 4) if isinstance(v, float) else v
                                                    for k, v in r.items()}}), flush=True)
@@ -117,10 +133,12 @@ def main() -> None:
 
 def write_table(rows: list[dict], path: Path) -> None:
     lines = ["| oracle | particles | run time (s) | runout error | height error | "
-             "displacement range error |", "|---|---:|---:|---:|---:|---:|"]
+             "displacement range error | peak (s) | at rest (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['oracle']} | {r['particles']} | {r['run_s']:.1f} | "
               f"{100 * r['runout_error']:.1f}% | {100 * r['height_error']:.1f}% | "
-              f"{100 * r['displacement_range_error']:.1f}% |" for r in rows]
+              f"{100 * r['displacement_range_error']:.1f}% | {r['peak_s']:.3f} | "
+              f"{r['rest_s']:.3f} |" for r in rows]
     path.write_text("\n".join(lines) + "\n")
 
 

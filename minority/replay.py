@@ -199,7 +199,7 @@ def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list
         k_lo = (math.floor((first_prev - t0) / e) + 1 if first_prev is not None
                 else math.ceil((first_t - t0) / e))
         k_hi = math.floor((min(float(times[-1]), w.t_end_s) - t0) / e)
-        done = {math.floor((t - t0) / e) for s, t, p in steps if w.wants(s, t, p)}
+        done = {w.instant(t) for s, t, p in steps if w.wants(s, t, p)}
         instants.update(t0 + k * e for k in range(max(k_lo, 0), k_hi + 1) if k not in done)
     return sorted(missing) + [f"t={t:.6g} s" for t in sorted(instants)]
 

@@ -113,6 +113,11 @@ class InlineColormap:
                 "RGBPoints": list(self.rgb_points), "NanColor": list(self.nan_color)}
 
 
+# every_s instants: a time within this fraction of every_s before an instant has reached it
+# (t_end_s - t_start_s is often a whole number of every_s only to rounding)
+INSTANT_TOLERANCE = 1e-9
+
+
 @dataclass(frozen=True)
 class Window:
     """A window of simulated time [t_start_s, t_end_s] (s) with its cadence and regions.
@@ -149,18 +154,27 @@ class Window:
     def contains(self, time_s: float) -> bool:
         return self.t_start_s <= time_s <= self.t_end_s
 
+    def instant(self, time_s: float) -> int:
+        """With every_s: the index k of the last instant t_start_s + k * every_s at or before
+        min(time_s, t_end_s) (-1 before the window starts)."""
+        if time_s < self.t_start_s:
+            return -1
+        return math.floor((min(time_s, self.t_end_s) - self.t_start_s) / self.every_s
+                          + INSTANT_TOLERANCE)
+
     def wants(self, step: int, time_s: float, prev_time_s: float | None = None) -> bool:
         """Whether sim step `step`, which went from `prev_time_s` to `time_s` (s), is due:
-        with every_s, when an instant t_start_s + k * every_s lies in (prev_time_s, time_s]
-        (prev_time_s None: when time_s is one), so each instant falls to exactly one step."""
-        if not self.contains(time_s):
-            return False
+        with every_s, when an instant t_start_s + k * every_s of the window lies in
+        (prev_time_s, time_s] (prev_time_s None: when time_s is one), so each instant falls
+        to exactly one step, the window's last one too (its step may end after t_end_s)."""
         if self.every_s is None:
-            return step % self.every_steps == 0
-        now = (time_s - self.t_start_s) / self.every_s
+            return self.contains(time_s) and step % self.every_steps == 0
         if prev_time_s is None:
-            return now == math.floor(now)
-        return math.floor(now) > math.floor((prev_time_s - self.t_start_s) / self.every_s)
+            now = (time_s - self.t_start_s) / self.every_s
+            return self.contains(time_s) and now == math.floor(now)
+        if time_s < self.t_start_s or prev_time_s >= self.t_end_s:
+            return False
+        return self.instant(time_s) > self.instant(prev_time_s)
 
     def planned_frames(self, duration_s: float, dt_s: float) -> int:
         """About how many steps of a run of `duration_s` with steps of `dt_s` (s) are due."""
@@ -168,7 +182,7 @@ class Window:
         if t1 < self.t_start_s:
             return 0
         if self.every_s is not None:
-            return int((t1 - self.t_start_s) / self.every_s) + 1
+            return self.instant(t1) + 1
         return int((t1 - self.t_start_s) / dt_s / self.every_steps) + 1
 
     def to_dict(self) -> dict:

@@ -74,10 +74,11 @@ def test_spec_views_events_range_and_budget(oracle):
     assert spec.provenance["predicted"]["onset_s"] == oracle.events.onset_s
     times = step_times(0.8, 1.3e-4)  # an MPM-like step
     counts = [len(rendered(spec, v, times)) for v in spec.views]
-    assert sum(counts) <= spec.budget.frames == 90 and sum(counts) >= 85
+    assert sum(counts) == spec.budget.frames == 90  # every planned instant renders
     for v in spec.views:  # every frame inside the view's windows
         t = rendered(spec, v, times)
-        assert t.min() >= v.t_start_s and t.max() <= v.t_end_s
+        # inside the view's windows; a window's last instant falls to the step after it
+        assert t.min() >= v.t_start_s and t.max() <= v.t_end_s + 1.3e-4
     # cadence where motion is fastest: the runout's densest window is the fastest one
     top = spec.views[1]
     weights = [oracle.weight(w.t_start_s, w.t_end_s) for w in top.schedule]

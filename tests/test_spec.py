@@ -198,6 +198,18 @@ def test_every_s_cadence_fires_on_the_first_step_after_each_instant():
     assert sum(w.wants(k, t, times[k - 1]) for k, t in enumerate(times[1:], 1)) == 5
 
 
+def test_every_s_cadence_renders_the_instant_at_the_window_end():
+    """The instant t_end_s falls to the first step after it, whose time is past the window:
+    it is still due (once), so a window renders all of planned_frames."""
+    w = Window(0.1, 0.3, every_s=0.05)  # (0.3 - 0.1) / 0.05 = 3.9999999999999996
+    times = [0.014 * k for k in range(40)]
+    due = [round(t, 6) for k, t in enumerate(times[1:], 1) if w.wants(k, t, times[k - 1])]
+    assert due == [0.112, 0.154, 0.21, 0.252, 0.308]
+    assert len(due) == w.planned_frames(1.0, 0.014) == 5
+    assert not w.wants(23, 0.322, 0.308)  # after the last instant
+    assert [w.instant(t) for t in (0.05, 0.1, 0.29, 0.308)] == [-1, 0, 3, 4]
+
+
 def test_schedule_with_several_windows_and_regions():
     d = base()
     d["regions"] = [{"name": "near", "lo_m": [0, 0, 0], "hi_m": [0.2, 1, 1]},

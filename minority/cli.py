@@ -258,7 +258,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
         spec = Spec.load(spec_path)
         if not log_path.is_file():
             raise ScoreError(f"{log_path}: no such file")
-        result = score(spec, load_run(log_path))
+        result = score(spec, load_run(log_path, spec.run))
     except (ScoreError, SpecError, ProtocolError) as exc:
         print(f"minority report score: error: {exc}", file=sys.stderr)
         return 2

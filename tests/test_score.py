@@ -1,5 +1,7 @@
 """The oracle's score on a hand-made log with a known run."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -33,10 +35,17 @@ def make_spec(views=1) -> Spec:
         "provenance": {"predicted": {"displacement_range_m": [0.0, 0.33]}}})
 
 
-def write_log(path, frame_times, chunk_particles=100):
+def write_log(path, frame_times, chunk_particles=100, other_run=False):
     rng = np.random.default_rng(0)
     with LogWriter(path) as log:
         ns = 1
+        if other_run:  # another run recorded in the same log: fast, and never scored
+            hist = speed_histogram(np.full(N_RANK, 9.0))
+            for k in range(5):
+                log.write(Stats("other", 0, k, 0.01 * k, N_RANK, 81.0 * N_RANK, 9.0, 5.0, True,
+                                hist, [0] * SPEED_BINS), log_ns=ns)
+                log.write(Frame("other", "v0", k, 0.01 * k, 4, 3, PNG), log_ns=ns + 1)
+                ns += 2
         for k, t in enumerate(np.arange(0, 0.8001, STATS_DT)):
             for rank in range(2):
                 # half of each rank's particles move at the profile's speed (outside the
@@ -81,7 +90,9 @@ def test_score_of_a_known_run(tmp_path):
     # speed >= 5% of the peak from ~0.13 s; the fast phase (>= half) is 0.2-0.4 s
     assert ev["failure_onset"]["actual_s"] == pytest.approx(0.13, abs=0.015)
     assert ev["peak_motion"]["actual_s"] == pytest.approx(0.30, abs=0.011)
-    assert not ev["peak_motion"]["within_10pct"] and ev["failure_onset"]["within_10pct"]
+    assert not ev["peak_motion"]["within_tolerance"] and ev["failure_onset"]["within_tolerance"]
+    assert ev["peak_motion"]["tolerance_s"] == pytest.approx(0.1 * ev["peak_motion"]["actual_s"])
+    assert ev["failure_onset"]["tolerance_s"] == pytest.approx(0.013, abs=0.0015)
     (a, b), = result["critical_windows_s"]
     assert a == pytest.approx(0.2, abs=0.011) and b == pytest.approx(0.4, abs=0.011)
     assert result["displacement_max_m"]["relative_error"] == pytest.approx(0.1)
@@ -115,12 +126,19 @@ def test_no_stats_is_a_clear_error(tmp_path):
 def test_cli_report_score(tmp_path, capsys):
     from minority.cli import main
 
-    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20))
+    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20), other_run=True)
     make_spec().save(tmp_path / "spec.json")
     assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "run.mcap"),
                  "--out", str(tmp_path / "s")]) == 0
     assert "| peak_motion | 0.360 |" in capsys.readouterr().out
     assert (tmp_path / "s" / "score.json").is_file()
+    # the spec's run only: the same score as a log without the other run
+    scored = json.loads((tmp_path / "s" / "score.json").read_text())
+    write_log(tmp_path / "alone.mcap", np.linspace(0.22, 0.38, 20))
+    alone = json.loads(json.dumps(score(make_spec(), load_run(tmp_path / "alone.mcap"))))
+    assert scored == alone and scored["frames"]["oracle"] == 20
+    with pytest.raises(ValueError, match="no stats records of run 'nobody'"):
+        load_run(tmp_path / "run.mcap", "nobody")
     assert main(["report", "score", str(tmp_path / "spec.json")]) == 2
     assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "no.mcap")]) == 2
     assert "no.mcap: no such file" in capsys.readouterr().err

@@ -16,6 +16,7 @@ import base64
 import fnmatch
 import json
 import struct
+import sys
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -173,6 +174,7 @@ class Recorder:
         self.writer = LogWriter(path, metadata={"run": run}, **writer_options)
         self._inbox = Inbox(session, keys.everything(run), capacity)
         self._stop = threading.Event()
+        self.write_errors = 0  # messages (or flushes) the file could not take
         self._thread = threading.Thread(target=self._loop, name="minority-recorder", daemon=True)
         self._thread.start()
 
@@ -191,10 +193,16 @@ class Recorder:
     def _loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=0.1)
-            if item is None:
-                self.writer.flush()
-                continue
-            self.writer.write_payload(item.key, item.payload, item.recv_ns)
+            try:
+                if item is None:
+                    self.writer.flush()
+                else:
+                    self.writer.write_payload(item.key, item.payload, item.recv_ns)
+            except OSError as exc:  # e.g. a full disk: count, say once, keep receiving
+                self.write_errors += 1
+                if self.write_errors == 1:
+                    print(f"minority record: cannot write {self.writer.path}: {exc} "
+                          "(failures are counted)", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         """Stop receiving, write what is queued, finish the file."""

@@ -2,6 +2,7 @@
 
 A step is complete when every rank named in its chunk headers has sent it, when the missing
 ranks have ended or died, or `timeout_s` after its first chunk (then flagged incomplete).
+It carries the fields every received chunk holds with one dtype and shape per particle.
 At most `max_pending` steps are held; past that, the oldest is released as incomplete.
 Duplicates and chunks of steps already released are counted and dropped.
 """
@@ -55,6 +56,7 @@ class AssemblyStats:
     late: int = 0  # chunks of steps already released
     timed_out: int = 0
     evicted: int = 0  # released early because too many steps were pending
+    mismatched_fields: int = 0  # fields left out of a step: ranks sent other dtypes or shapes
 
 
 class StepAssembler:
@@ -126,6 +128,11 @@ class StepAssembler:
         for c in chunks[1:]:
             names &= set(c.fields)
         names.discard("positions")
+        # a field whose ranks disagree on dtype or components cannot be merged: left out
+        clash = {k for k in names if len({(c.fields[k].dtype, c.fields[k].shape[1:])
+                                          for c in chunks}) > 1}
+        self.stats.mismatched_fields += len(clash)
+        names -= clash
         def join(arrays: list[np.ndarray]) -> np.ndarray:
             return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)  # no copy for one
 

@@ -60,6 +60,7 @@ class ServerStats:
     steps_skipped: int = 0  # replaced by a newer step before rendering
     frames: int = 0
     view_errors: int = 0  # views that could not be rendered (e.g. a missing field)
+    write_errors: int = 0  # frames rendered and published whose PNG could not be written
     last_error: str = ""
     errors_unreported: int = field(default=0, repr=False)
 
@@ -73,9 +74,13 @@ class LatestStep:
         self.replaced = 0
 
     def put(self, step: AssembledStep) -> None:
+        """Offer a step; an older step than the one waiting is the one dropped (two threads
+        release steps, so they may arrive out of order)."""
         with self._cond:
             if self._step is not None:
                 self.replaced += 1
+                if self._step.step > step.step:
+                    return
             self._step = step
             self._cond.notify()
 
@@ -214,6 +219,9 @@ class RenderServer:
                     except ProtocolError as exc:
                         self.stats.rejected += 1
                         self._error(f"rejected chunk on {item.key}: {exc}")
+                    except Exception as exc:  # noqa: BLE001 - the loop must outlive any chunk
+                        self.stats.rejected += 1
+                        self._error(f"chunk on {item.key} failed: {exc!r}")
                     else:
                         self.stats.chunks += 1
                         self._ranks_expected = max(self._ranks_expected, chunk.ranks)
@@ -234,7 +242,11 @@ class RenderServer:
         while not self._stop.is_set():
             step = self._latest.take(timeout=RECEIVE_POLL_S)
             if step is not None:
-                self.render_step(step)
+                try:
+                    self.render_step(step)
+                except Exception as exc:  # noqa: BLE001 - keep serving the next steps
+                    self.stats.view_errors += 1
+                    self._error(f"step {step.step} failed to render: {exc!r}")
             elif self._drained.is_set() and self._latest.empty():
                 self.finished.set()  # every rank is done and its last step rendered
         self.stats.steps_skipped = self._latest.replaced
@@ -252,8 +264,12 @@ class RenderServer:
             view = r.view
             if self.options.write_png:
                 path = self.options.out_dir / self.run / view.name / f"{step.step:06d}.png"
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_bytes(r.png)
+                try:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    path.write_bytes(r.png)
+                except OSError as exc:  # the frame is still published
+                    self.stats.write_errors += 1
+                    self._error(f"cannot write {path}: {exc}")
             frame = Frame(self.run, view.name, step.step, step.time_s, view.width, view.height,
                           r.png)
             put(self.session, keys.frame(self.run, view.name), frame.encode(), FRAME_QOS)
@@ -285,7 +301,8 @@ class RenderServer:
         return {"chunks": self.stats.chunks, "rejected": self.stats.rejected,
                 "steps_rendered": self.stats.steps_rendered,
                 "steps_skipped": self._latest.replaced, "frames": self.stats.frames,
-                "view_errors": self.stats.view_errors, "duplicates": a.duplicates,
+                "view_errors": self.stats.view_errors, "write_errors": self.stats.write_errors,
+                "mismatched_fields": a.mismatched_fields, "duplicates": a.duplicates,
                 "late": a.late, "timed_out": a.timed_out, "evicted": a.evicted,
                 "inbox_dropped": self._inbox.dropped}
 

@@ -114,6 +114,7 @@ class PublishStats:
     scheduled: int = 0  # chunks the spec's schedule asked for
     sent: int = 0  # handed to zenoh (and recorded)
     recorded: int = 0  # messages written to the rank's MCAP record
+    record_errors: int = 0  # messages the record could not take (e.g. a full disk)
     dropped_no_server: int = 0  # no zenoh session (nothing to send to)
     dropped_outbox: int = 0  # the outbox was full: the server (or the disk) fell behind
     dropped_at_exit: int = 0  # still in the outbox when the drain timeout ran out
@@ -323,11 +324,9 @@ class RankPublisher:
                 continue
             try:
                 outcome = self._send(item) if item.publish else "local"
-                if self._writer is not None:
-                    self._writer.write_payload(item.key, bytes(item.payload))
+                recorded = self._record(item)
                 with self._lock:
-                    if self._writer is not None:
-                        self.stats.recorded += 1
+                    self.stats.recorded += recorded
                     if item.kind == CHUNK:
                         if outcome == "sent":
                             self.stats.sent += 1
@@ -343,6 +342,23 @@ class RankPublisher:
                             self.stats.stats_dropped += 1
             finally:
                 self._outbox.done()
+
+    def _record(self, item: OutboxItem) -> int:
+        """Write the message to the rank's record; 1 if written. A write error (a full disk)
+        is counted and said once; publishing goes on."""
+        if self._writer is None:
+            return 0
+        try:
+            self._writer.write_payload(item.key, bytes(item.payload))
+            return 1
+        except OSError as exc:
+            with self._lock:
+                self.stats.record_errors += 1
+                first = self.stats.record_errors == 1
+            if first:
+                print(f"minority sim: rank {self.rank}: cannot write its record: {exc} "
+                      "(publishing goes on; failures are counted)", file=self.log, flush=True)
+            return 0
 
     def _send(self, item: OutboxItem) -> str:
         """Put one message; returns "sent", "no_server", "stalled" or "failed"."""

@@ -120,3 +120,28 @@ def test_inbox_bounds_queued_bytes(server, client_factory):
     put(sender, keys.chunk(RUN, 11, 0), make_chunk(n=1000, step=11, run=RUN).encode(), LOSSLESS_QOS)
     assert wait_until(lambda: inbox.received == probes + 11)
     assert inbox.get(timeout=5) is not None  # room again once drained
+
+
+def test_recorder_survives_a_write_error(server, client_factory, tmp_path):
+    """A write that fails (a full disk) is counted; the recorder keeps receiving and writing."""
+    sender, observer = client_factory(), client_factory()
+    recorder = Recorder(observer, tmp_path / "full.mcap", run=RUN, flush_interval_s=0.1)
+    real, calls = recorder.writer.write_payload, []
+
+    def disk_full_once(key, payload, log_ns=None):
+        calls.append(key)
+        if len(calls) == 1:
+            raise OSError(28, "No space left on device")
+        return real(key, payload, log_ns)
+
+    recorder.writer.write_payload = disk_full_once
+    probes = handshake(sender, [recorder])
+    for step in range(1, 11):
+        put(sender, keys.chunk(RUN, step, 0), make_chunk(n=10, step=step, run=RUN).encode(),
+            LOSSLESS_QOS)
+    assert wait_until(lambda: recorder.written == probes - 1 + 10)
+    recorder.close()
+    assert recorder.write_errors == 1
+    steps = [decode_as(r.data, Chunk).step for r in read_log(tmp_path / "full.mcap")
+             if r.topic.endswith("/chunk")]
+    assert steps[-10:] == list(range(1, 11))

@@ -90,3 +90,14 @@ def test_drain_releases_what_is_pending():
     done = a.drain(0)
     assert [d.step for d in done] == [40, 60] and all(d.incomplete for d in done)
     assert a.pending == {}
+
+
+def test_fields_whose_ranks_disagree_on_shape_or_dtype_are_left_out():
+    a = StepAssembler()
+    c0, c1 = chunk(5, 0, ranks=2), chunk(5, 1, ranks=2)
+    c1.fields["displacement"] = np.ascontiguousarray(c1.fields["displacement"][:, 0])
+    c1.fields["material"] = c1.fields["material"].astype(np.float64)
+    a.add(c0, 0, 1)
+    (done,) = a.add(c1, 0, 1)
+    assert "displacement" not in done.fields and "material" not in done.fields
+    assert done.positions.shape == (20, 3) and a.stats.mismatched_fields == 2

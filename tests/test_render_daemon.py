@@ -241,3 +241,45 @@ def test_a_done_event_that_overtakes_the_ranks_last_chunk_waits_for_it(daemon, c
     timing.get(1)
     t = decode_as(timing.get(1).payload, Timing)
     assert t.step == 20 and t.ranks_received == 2 and not t.incomplete and t.particles == 100
+
+
+def test_ranks_disagreeing_on_a_field_and_an_unwritable_frame_dir_are_survived(
+        server, client_factory, tmp_path):
+    blocker = tmp_path / "frames"
+    blocker.write_text("a file where the frame directory should be")
+    d = RenderServer(server, ServerOptions(spec(), blocker, None, timeout_s=30.0))
+    try:
+        sim = client_factory()
+        frames = Inbox(sim, keys.frames(RUN))
+        for rank in range(2):  # rank 1 sends displacement as [n], rank 0 as [n, 3]
+            c = make_chunk(n=50, step=20, rank=rank, ranks=2, seed=rank, run=RUN)
+            if rank == 1:
+                c.fields["displacement"] = np.ascontiguousarray(c.fields["displacement"][:, 0])
+            put(sim, keys.chunk(RUN, 20, rank), c.encode(), LOSSLESS_QOS)
+        assert wait_until(lambda: d.stats.view_errors == 1)  # left out: the view cannot draw
+        send_step(sim, 40)
+        assert wait_until(lambda: frames.received == 1)  # published, its PNG not written
+        assert d.stats.write_errors == 1 and d.summary()["mismatched_fields"] == 1
+        assert d.stats.frames == 1 and "cannot write" in d.stats.last_error
+    finally:
+        d.close()
+
+
+def test_an_older_step_never_replaces_a_newer_one_waiting():
+    from render_server.daemon import LatestStep
+
+    slot = LatestStep()
+    newer, older = make_step(11), make_step(10)
+    slot.put(newer)
+    slot.put(older)  # released late by another thread
+    assert slot.take(0.1) is newer and slot.replaced == 1
+    slot.put(older)
+    slot.put(newer)
+    assert slot.take(0.1) is newer and slot.replaced == 2
+
+
+def make_step(step: int):
+    from render_server.assemble import AssembledStep
+
+    return AssembledStep(step, 0.001 * step, np.zeros((1, 3), np.float32), {}, 0.01, 1, 1, 0,
+                         0.0, False)

@@ -523,3 +523,31 @@ def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpo
     finally:
         pub.close()
         ready[0].undeclare()
+
+
+def test_a_record_write_error_is_counted_and_publishing_goes_on(tmp_path):
+    """A full disk under the rank's record: the failed message is counted, said once, and
+    the sender thread keeps going (it used to die, and the outbox filled up)."""
+    from sim.publish import RankPublisher
+
+    log = io.StringIO()
+    pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)),
+                        PublishOptions(record=tmp_path / "sim.mcap"), log)
+    pub.start(RUN, Spec.from_dict(spec_dict(every_steps=1)))
+    assert pub._outbox.wait_empty(5.0)  # the spec it follows is recorded
+    real, calls = pub._writer.write_payload, []
+
+    def disk_full_once(key, payload, log_ns=None):
+        calls.append(key)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        return real(key, payload, log_ns)
+
+    pub._writer.write_payload = disk_full_once
+    for k in range(3):
+        pub.event(EventKind.ERROR, f"message {k}")
+    stats = pub.close()
+    assert len(calls) == 4 and stats.record_errors == 1 and stats.recorded == 1 + 3
+    assert log.getvalue().count("cannot write its record") == 1
+    events = [r.decode() for r in read_log(tmp_path / "sim.mcap", [f"minority/{RUN}/event"])]
+    assert [e.message for e in events] == ["message 0", "message 2", "rank 0 done"]

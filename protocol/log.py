@@ -15,10 +15,12 @@ from __future__ import annotations
 import base64
 import fnmatch
 import json
+import os
 import struct
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,24 +238,34 @@ class LogRecord:
         return cls.from_json(obj, self.publish_ns)
 
 
+class LogDamagedWarning(RuntimeWarning):
+    """read_log stopped at a damaged record inside a log (not at a cut-short tail)."""
+
+
 def read_log(path: str | Path, topics: Iterable[str] | None = None,
              start_ns: int | None = None, end_ns: int | None = None) -> Iterator[LogRecord]:
     """Iterate stored messages in file order, filtered by topic (exact or glob, e.g.
     `minority/*/chunk`) and log time in [start_ns, end_ns). A file cut short (a killed
-    recorder) yields every message of its completed chunks, then stops."""
+    recorder) yields every message of its completed chunks, then stops; a damaged chunk
+    inside the file (its CRC does not match) stops it too, with a LogDamagedWarning."""
     patterns = list(topics) if topics is not None else None
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     wanted: dict[int, bool] = {}
     with open(path, "rb") as f:
-        records = StreamReader(f).records
+        records = StreamReader(f, validate_crcs=True).records
         while True:
             try:
                 record = next(records)
             except StopIteration:
                 return
-            except (McapError, EOFError, struct.error, ValueError):
-                return  # truncated tail: what came before is complete
+            except (McapError, EOFError, struct.error, ValueError) as exc:
+                pos, size = f.tell(), os.fstat(f.fileno()).st_size
+                if pos < size:  # not a cut-short tail: a damaged record inside the file
+                    warnings.warn(f"{path}: unreadable record before byte {pos} of {size} "
+                                  f"({exc}); the rest of the file is not read",
+                                  LogDamagedWarning, stacklevel=2)
+                return  # a truncated tail: what came before is complete
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):

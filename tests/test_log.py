@@ -2,13 +2,14 @@
 
 import json
 import os
+import warnings
 
 import pytest
 from conftest import make_chunk, sample_messages
 from mcap.reader import make_reader
 
 from protocol import Chunk, Frame, Timing
-from protocol.log import REJECTED_TOPIC, LogWriter, read_log
+from protocol.log import REJECTED_TOPIC, LogDamagedWarning, LogWriter, read_log
 
 
 def write_samples(path, **options):
@@ -105,8 +106,25 @@ def test_truncated_log_yields_its_complete_chunks(tmp_path):
     counts = []
     for cut in range(0, size + 1, max(1, size // 97)):
         path.write_bytes(data[:cut])
-        records = list(read_log(path))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", LogDamagedWarning)  # a cut tail is not damage
+            records = list(read_log(path))
         assert [r.data for r in records] == payloads[:len(records)]
         counts.append(len(records))
     assert counts == sorted(counts) and counts[-1] >= 9
     log.close()
+
+
+def test_a_damaged_chunk_inside_the_log_is_said(tmp_path):
+    path = tmp_path / "d.mcap"
+    payloads = [bytes(make_chunk(n=50, step=s).encode()) for s in range(10)]
+    with LogWriter(path) as log:
+        for step, payload in enumerate(payloads):
+            log.write_payload(f"minority/test-run/chunk/{step}/0", payload, log_ns=step)
+            log.flush()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0xFF  # one flipped byte in a chunk's data
+    path.write_bytes(bytes(data))
+    with pytest.warns(LogDamagedWarning, match="crc validation failed"):
+        records = list(read_log(path))
+    assert 0 < len(records) < 10 and [r.data for r in records] == payloads[:len(records)]

@@ -55,7 +55,7 @@ def run_mpm(scene: Path, out: Path, threads: int) -> float:
                 return float(f.attrs["wall_s"])
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "minority", "sim", str(scene), "--out", str(out),
-                    "--threads", str(threads), "-q"], check=True)
+                    "--threads", str(threads), "--no-publish", "-q"], check=True)
     wall = time.perf_counter() - t0
     with h5py.File(out, "a") as f:
         f.attrs["wall_s"] = wall

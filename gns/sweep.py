@@ -176,7 +176,8 @@ def run_sweep(cfg: SweepConfig, out_dir: str | Path, *, jobs: int = 1, threads: 
 
     def run_one(p: ScenePlan) -> None:
         cmd = [sys.executable, "-m", "minority", "sim", str(out / f"{p.name}.toml"),
-               "--out", str(out / f"{p.name}.h5"), "--threads", str(threads), "-q"]
+               "--out", str(out / f"{p.name}.h5"), "--threads", str(threads), "--no-publish",
+               "-q"]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if proc.returncode != 0:
             raise SweepError(f"scene {p.name} failed: {proc.stderr.strip()[-500:]}")

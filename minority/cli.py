@@ -448,9 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where everything goes (default: demo/)")
     p.add_argument("--ranks", type=int, default=2, help="MPI ranks of the sim (default 2)")
     p.add_argument("--duration", type=float, default=0.7, metavar="S",
-                   help="simulated time, s (default 0.7: the runout ends near 0.56 s)")
+                   help="simulated time, s (default 0.7: the runout ends near 0.62 s)")
     p.add_argument("--cell-size", type=float, default=0.016, metavar="M",
-                   help="grid cell, m: 0.016 gives 12,960 particles (default), 0.032 gives 1,620")
+                   help="grid cell, m: 0.016 gives 12,960 particles (default), 0.032 gives 1,800")
     p.add_argument("--frames", type=int, default=90, help="frame budget, all views (default 90)")
     p.add_argument("--threads", type=int, default=1, help="threads per process (default 1)")
     p.set_defaults(func=_cmd_demo)

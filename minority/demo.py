@@ -33,8 +33,8 @@ RUN = "demo"
 class DemoOptions:
     out: Path = Path("demo")
     ranks: int = 2
-    duration_s: float = 0.7  # simulated; the runout ends near 0.56 s
-    cell_size_m: float = 0.016  # 0.016: 12,960 particles (the showcase); 0.032: 1,620
+    duration_s: float = 0.7  # simulated; the runout ends near 0.62 s
+    cell_size_m: float = 0.016  # 0.016: 12,960 particles (the showcase); 0.032: 1,800
     frames: int = 90  # frame budget, all views
     width: int = 1024  # px
     height: int = 768

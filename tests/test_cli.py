@@ -1,4 +1,4 @@
-"""The `minority` command: help at every level, unbuilt subcommands say so and exit 2."""
+"""The `minority` command: help at every level, every subcommand built and dispatched."""
 
 import subprocess
 import sys

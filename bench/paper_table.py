@@ -55,7 +55,8 @@ def run_sim(scene: Path, steps: int, publish) -> tuple[float, dict]:
     config = RankRunConfig(scene_path=scene, out=None, threads=1, progress=False,
                            publish=publish, run=RUN, wait_s=30.0 if publish else 0.0,
                            max_steps=steps)
-    summary = run_ranks(config, stream=open(os.devnull, "w"))  # noqa: SIM115
+    with open(os.devnull, "w") as quiet:
+        summary = run_ranks(config, stream=quiet)
     return summary.loop_wall_s, summary.publish
 
 
@@ -69,19 +70,21 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
     from sim.publish import PublishOptions
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    server = subprocess.Popen(
-        [sys.executable, "-m", "minority", "serve", "--spec", str(spec_path), "--out",
-         str(work / "frames"), "--record", str(log), "--listen", endpoint, "--exit-when-done"],
-        stdout=subprocess.DEVNULL, stderr=open(log.with_suffix(".server.log"), "w"),  # noqa: SIM115
-        preexec_fn=lambda: os.sched_setaffinity(0, {SERVER_CORE}),
-        env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
-    try:
-        result = run_sim(scene, steps, PublishOptions(
-            network=NetworkOptions(connect=[endpoint]), stats_every_s=0.005))
-        server.wait(timeout=600)
-    finally:
-        if server.poll() is None:
-            server.kill()
+    with open(log.with_suffix(".server.log"), "w") as server_log:
+        server = subprocess.Popen(
+            [sys.executable, "-m", "minority", "serve", "--spec", str(spec_path), "--out",
+             str(work / "frames"), "--record", str(log), "--listen", endpoint,
+             "--exit-when-done"], stdout=subprocess.DEVNULL, stderr=server_log,
+            preexec_fn=lambda: os.sched_setaffinity(0, {SERVER_CORE}),
+            env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+        try:
+            result = run_sim(scene, steps, PublishOptions(
+                network=NetworkOptions(connect=[endpoint]), stats_every_s=0.005))
+            server.wait(timeout=600)
+        finally:
+            if server.poll() is None:
+                server.kill()
+                server.wait()
     return result
 
 

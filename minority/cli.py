@@ -53,10 +53,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
     session = _open_peer(opts, role, "record", args.wait)
     if session is None:
         return 1
+    try:
+        recorder = Recorder(session, args.output, run=args.run,
+                            compression=CompressionType[args.compression.upper()],
+                            flush_interval_s=args.flush_interval)
+    except OSError as exc:
+        print(f"minority record: error: cannot write {args.output}: {exc}", file=sys.stderr)
+        session.close()
+        return 1
     stop = _stop_on_signals()
-    recorder = Recorder(session, args.output, run=args.run,
-                        compression=CompressionType[args.compression.upper()],
-                        flush_interval_s=args.flush_interval)
     print(f"recording minority/{args.run}/** to {args.output} (Ctrl-C to stop)", file=sys.stderr)
     start = time.monotonic()
     try:
@@ -90,8 +95,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"minority serve: error: {exc}", file=sys.stderr)
         return 1
     record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
-    if record is not None:
-        record.parent.mkdir(parents=True, exist_ok=True)
     opts = options_from_args(args)
     # the server's own large puts are frames: a pool for the largest raw image
     opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for v in spec.views), default=0)
@@ -101,9 +104,16 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     except zenoh.ZError as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 1
+    try:
+        if record is not None:
+            record.parent.mkdir(parents=True, exist_ok=True)
+        server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
+                                                     shadows=args.shadows))
+    except OSError as exc:
+        print(f"minority serve: error: cannot write the log {record}: {exc}", file=sys.stderr)
+        session.close()
+        return 1
     stop = _stop_on_signals()
-    server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
-                                                 shadows=args.shadows))
     print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to {args.out}/{spec.run}/"
           + (f", log {record}" if record else ""), file=sys.stderr, flush=True)
     try:

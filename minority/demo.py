@@ -128,7 +128,11 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
     finally:
         if server.poll() is None:
             server.send_signal(signal.SIGINT)
-            server.wait(timeout=60)
+            try:
+                server.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                server.kill()  # never leave it running behind the demo
+                server.wait()
         server_log.close()
     if server.returncode != 0:
         raise RuntimeError(f"the render server failed (exit {server.returncode}); see "

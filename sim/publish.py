@@ -115,6 +115,7 @@ class PublishStats:
     sent: int = 0  # handed to zenoh (and recorded)
     recorded: int = 0  # messages written to the rank's MCAP record
     record_errors: int = 0  # messages the record could not take (e.g. a full disk)
+    bad_specs: int = 0  # spec updates that did not decode (the rank kept its spec)
     dropped_no_server: int = 0  # no zenoh session (nothing to send to)
     dropped_outbox: int = 0  # the outbox was full: the server (or the disk) fell behind
     dropped_at_exit: int = 0  # still in the outbox when the drain timeout ran out
@@ -237,7 +238,11 @@ class RankPublisher:
     def _on_spec(self, sample) -> None:  # zenoh thread: decode, swap, note it in the record
         try:
             spec = decode_as(sample.payload.to_bytes(), Spec)
-        except (ProtocolError, SpecError):
+        except (ProtocolError, SpecError) as exc:
+            with self._lock:
+                self.stats.bad_specs += 1
+            print(f"rank {self.rank}: ignored a malformed spec update: {exc}", file=self.log,
+                  flush=True)
             return
         if spec.run == self.run and spec != self.spec:
             self.spec = spec

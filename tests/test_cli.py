@@ -1,5 +1,6 @@
 """The `minority` command: help at every level, every subcommand built and dispatched."""
 
+import json
 import subprocess
 import sys
 
@@ -57,3 +58,19 @@ def test_sim_bad_scene_and_unstable_dt_fail_clearly(tmp_path, capsys):
     assert "no shipped scene 'no_such_scene'" in capsys.readouterr().err
     assert main(["sim", "tiny", "--dt", "1", "--out", str(tmp_path / "x.h5"), "--quiet"]) == 1
     assert "exceeds the stable bound" in capsys.readouterr().err
+
+
+def test_record_and_serve_say_when_they_cannot_write_their_log(tmp_path, capsys):
+    from conftest import free_port
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"version": 1, "run": "r", "views": [{
+        "name": "v", "camera": {"position": [0, -1, 0], "focal_point": [0, 0, 0]}}]}))
+    assert main(["record", "--listen", f"tcp/127.0.0.1:{free_port()}", "-o",
+                 str(blocker / "x.mcap"), "--duration", "1", "--quiet"]) == 1
+    assert "cannot write" in capsys.readouterr().err
+    assert main(["serve", "--spec", str(spec), "--listen", f"tcp/127.0.0.1:{free_port()}",
+                 "--out", str(tmp_path / "frames"), "--record", str(blocker / "x.mcap")]) == 1
+    assert "cannot write the log" in capsys.readouterr().err

@@ -88,3 +88,17 @@ def sample_messages() -> list:
             Event("test-run", EventKind.RANK_DONE, 1, "rank 1 done", {"dropped": 0}),
             Stats("test-run", 1, 40, 0.004, 100, 12.5, 0.75, 0.02, True,
                   [0] * 40 + [60] + [0] * 11, [0] * 30 + [40] + [0] * 21)]
+
+
+def fail_call(real, at: int, exc: Exception):
+    """Wrap `real` so that its `at`-th call (1-based) raises `exc` (e.g. a full disk);
+    returns the wrapper and the list of call arguments it records."""
+    calls = []
+
+    def wrapper(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == at:
+            raise exc
+        return real(*args, **kwargs)
+
+    return wrapper, calls

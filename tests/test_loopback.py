@@ -8,7 +8,7 @@ import sys
 import threading
 import time
 
-from conftest import make_chunk
+from conftest import fail_call, make_chunk
 
 from protocol import Chunk, decode_as, keys
 from protocol.log import Recorder, read_log
@@ -126,15 +126,8 @@ def test_recorder_survives_a_write_error(server, client_factory, tmp_path):
     """A write that fails (a full disk) is counted; the recorder keeps receiving and writing."""
     sender, observer = client_factory(), client_factory()
     recorder = Recorder(observer, tmp_path / "full.mcap", run=RUN, flush_interval_s=0.1)
-    real, calls = recorder.writer.write_payload, []
-
-    def disk_full_once(key, payload, log_ns=None):
-        calls.append(key)
-        if len(calls) == 1:
-            raise OSError(28, "No space left on device")
-        return real(key, payload, log_ns)
-
-    recorder.writer.write_payload = disk_full_once
+    recorder.writer.write_payload, _ = fail_call(recorder.writer.write_payload, 1,
+                                                 OSError(28, "No space left on device"))
     probes = handshake(sender, [recorder])
     for step in range(1, 11):
         put(sender, keys.chunk(RUN, step, 0), make_chunk(n=10, step=step, run=RUN).encode(),

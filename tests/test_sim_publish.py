@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from conftest import free_port
+from conftest import fail_call, free_port
 from test_loopback import wait_until
 
 from protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
@@ -535,15 +535,8 @@ def test_a_record_write_error_is_counted_and_publishing_goes_on(tmp_path):
                         PublishOptions(record=tmp_path / "sim.mcap"), log)
     pub.start(RUN, Spec.from_dict(spec_dict(every_steps=1)))
     assert pub._outbox.wait_empty(5.0)  # the spec it follows is recorded
-    real, calls = pub._writer.write_payload, []
-
-    def disk_full_once(key, payload, log_ns=None):
-        calls.append(key)
-        if len(calls) == 2:
-            raise OSError(28, "No space left on device")
-        return real(key, payload, log_ns)
-
-    pub._writer.write_payload = disk_full_once
+    pub._writer.write_payload, calls = fail_call(pub._writer.write_payload, 2,
+                                                 OSError(28, "No space left on device"))
     for k in range(3):
         pub.event(EventKind.ERROR, f"message {k}")
     stats = pub.close()

@@ -100,10 +100,11 @@ def cannot_render(view: View, step: StepLike) -> str:
 def render_views(step: StepLike, spec: Spec, canvases: dict[str, Canvas],
                  shadows: bool = False, views: list[View] | None = None) -> list[RenderedView]:
     """Render the views of `spec` due at `step` (or `views`, each due at the step), reusing
-    and filling `canvases` (per view name). A step without particles renders nothing."""
+    and filling `canvases` (per view name). A due view of a step without particles (the sim
+    sends empty chunks when nothing is in the regions) renders its background."""
     if views is None:
         views = spec.wants(step.step, step.time_s, step.prev_time_s)
-    if not views or len(step.positions) == 0:
+    if not views:
         return []
     radius = spec.sphere_radius_m or 0.5 * step.spacing_m
     subsets: dict[SubsetKey, _Subset] = {}

@@ -91,14 +91,16 @@ def test_bad_and_degenerate_input_is_survived(daemon, client_factory):
     nan.fields["positions"][3] = np.nan
     put(sim, keys.chunk(RUN, 20, 0), nan.encode(), LOSSLESS_QOS)
     assert wait_until(lambda: daemon.stats.rejected == 2)
-    send_step(sim, 20, ranks=1, n=0)  # zero particles: assembled, nothing to draw
+    send_step(sim, 20, ranks=1, n=0)  # zero particles: the view's background
+    assert wait_until(lambda: frames.received == 1)  # (newest wins: one step at a time)
     send_step(sim, 40, ranks=1, n=1)  # one particle
-    assert wait_until(lambda: frames.received == 1)
+    assert wait_until(lambda: frames.received == 2)
     same = make_chunk(n=30, step=60, rank=0, ranks=1, run=RUN)
     same.fields["positions"][:] = 0.5  # every particle at one point
     put(sim, keys.chunk(RUN, 60, 0), same.encode(), LOSSLESS_QOS)
-    assert wait_until(lambda: frames.received == 2)
-    assert daemon.stats.steps_rendered == 2 and daemon.stats.rejected == 2
+    assert wait_until(lambda: frames.received == 3)
+    assert daemon.stats.steps_rendered == 3 and daemon.stats.rejected == 2
+    assert daemon.stats.view_errors == 0
 
 
 def test_rank_killed_mid_step_releases_incomplete_step(daemon, client_factory):

@@ -117,7 +117,10 @@ def test_empty_region_shows_the_background_and_what_cannot_render_is_named():
     assert got["pressure"].image is None and "needs field 'pressure'" in got["pressure"].error
     assert got["all"].image is not None and not got["all"].error
     assert "'No Such Preset' is not a built-in preset" in got["unknown"].error
-    assert frames.render_views(make_step(n=0), spec, {}) == []  # nothing arrived: no frame
+    # a step whose chunks hold no particles: each due view that can render is its background
+    empty = by_name(frames.render_views(make_step(n=0), spec, {}))
+    assert empty["all"].particles == 0 and (empty["all"].image == 255).all()
+    assert empty["nothing"].particles == 0 and "needs field" in empty["pressure"].error
 
 
 def test_canvases_are_reused_per_view():

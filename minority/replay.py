@@ -9,7 +9,8 @@ log does not hold; such views are reported per view, with the steps, and not ren
 - a field the chunks do not carry;
 - particles the simulation culled away: the view's regions at a step reach outside the
   regions the recorded spec requested at that step, or its decimation needs particles (or
-  particle ids) that the recorded stride left out;
+  particle ids) that the recorded stride left out, or the recorded views were occlusion
+  culled and none of them sees what this view sees (same camera, size, stride, regions);
 - steps the new schedule wants that were never recorded (estimated from the recorded steps'
   numbers and times: step numbers for every_steps windows, instants for every_s windows).
 """
@@ -172,6 +173,13 @@ def missing_data(spec: Spec, view: View, step: AssembledStep, recorded: Spec | N
     if k != stride and ID_FIELD not in step.fields:
         return (f"decimate {k} needs particle ids to pick from the recorded stride {stride}, "
                 f"and the log holds no {ID_FIELD!r} field")
+    if request.visible_in and not (spec.sphere_radius_m == recorded.sphere_radius_m and any(
+            (v.camera, v.width, v.height, v.decimate, r)
+            == (view.camera, view.width, view.height, view.decimate, wanted)
+            for v, r in request.visible_in)):
+        return ("the simulation sent only the particles the recorded cameras could see "
+                "(occlusion_cull), and no recorded view has this view's camera, size, "
+                "stride, regions and sphere radius")
     return ""
 
 
@@ -219,6 +227,10 @@ def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
     spec = spec if spec is not None else (own[-1] if own else None)
     if spec is not None and out is not None:
         summary.views = {v.name: ViewReport() for v in spec.views}
+    culled = sorted({v.name for s in own for v in s.views if v.occlusion_cull})
+    if shadows and out is not None and culled and progress is not None:
+        progress(f"note: the recorded views {', '.join(culled)} had occlusion_cull: the log "
+                 "lacks the hidden particles, so their shadows are missing")
     series = VtkSeries(vtk, run) if vtk is not None else None
     assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
     canvases: dict = {}

@@ -228,3 +228,17 @@ def test_unrecorded_instants_of_every_s_windows():
     steps = [(s, s * 0.125, (s - 1) * 0.125) for s in range(1, 13) if s != 8]
     assert unrecorded(v, steps) == ["t=1 s"]
     assert unrecorded(v, [(s, s * 0.125, (s - 1) * 0.125) for s in range(1, 13)]) == []
+
+
+def test_occlusion_culled_logs_serve_only_the_views_that_were_culled_for():
+    old = make_spec(view("a", SIDE, occlusion_cull=True), view("b", TOP, occlusion_cull=True))
+    step = AssembledStep(20, 0.002, np.zeros((4, 3), np.float32),
+                         {"displacement": np.zeros((4, 3), np.float32)}, 0.01, 1, 1, 0, 0.0,
+                         False, 0.0019)
+    assert old.request(20, 0.002).visible_in  # the sim sent what a or b could see
+    same = make_spec(view("again", TOP))  # b's camera and size: every particle it sees came
+    assert missing_data(same, same.views[0], step, old) == ""
+    moved = make_spec(view("moved", {**TOP, "position": [0.5, 0.4, 3.0]}))
+    assert "occlusion_cull" in missing_data(moved, moved.views[0], step, old)
+    bigger = make_spec(view("bigger", TOP, width=96))
+    assert "occlusion_cull" in missing_data(bigger, bigger.views[0], step, old)

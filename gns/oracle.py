@@ -36,6 +36,13 @@ VIEW_ANGLE_DEG = 30.0
 AERIAL_DIRECTION = (-0.55, 0.75, -0.45)  # camera looking back, across and down at the deposit
 
 
+# (name, phase, view direction, view up): the reference paper's side view of the failing
+# column and top and aerial views of the runout
+VIEWS = (("side", "initiation", (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+         ("top", "runout", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
+         ("aerial", "runout", AERIAL_DIRECTION, (0.0, 0.0, 1.0)))
+
+
 @dataclass(frozen=True)
 class OracleOptions:
     run: str = "run"
@@ -51,6 +58,11 @@ class OracleOptions:
     speed_power: float = 4.0  # frames per segment in proportion to the integral of speed^p
     colormap: str = "Viridis (matplotlib)"
     occlusion_cull: bool = True  # the sim sends only particles a view's camera can see
+
+    def __post_init__(self) -> None:
+        if self.frames < 2 * len(VIEWS):
+            raise ValueError(f"a frame budget of {self.frames} is too small: each of the "
+                             f"{len(VIEWS)} views needs at least 2 frames (its window's ends)")
 
 
 def fit_camera(lo: np.ndarray, hi: np.ndarray, direction, view_up, aspect: float,
@@ -125,7 +137,8 @@ class Oracle:
         fast_start = min(max(fast[0][0], e.onset_s + self.dt), e.peak_s) if fast else e.peak_s
         end = max(e.runout_end_s, fast_start + self.dt)
         pad = self.dt
-        return {"initiation": (max(0.0, e.onset_s - pad), min(e.peak_s + pad, e.duration_s)),
+        failing = max(e.peak_s, e.onset_s + self.dt)  # an early kinetic-energy spike aside
+        return {"initiation": (max(0.0, e.onset_s - pad), min(failing + pad, e.duration_s)),
                 "runout": (max(0.0, fast_start - pad), min(end + pad, e.duration_s))}
 
     def region(self, t0: float, t1: float) -> list[np.ndarray]:
@@ -193,17 +206,18 @@ class Oracle:
                                     "hi_m": box[:, 1].tolist()})
                     boxes.setdefault(f"{phase}_{k}", []).append((name, box))
             schedules[phase] = segs
-        views = (("side", "initiation", (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
-                 ("top", "runout", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
-                 ("aerial", "runout", AERIAL_DIRECTION, (0.0, 0.0, 1.0)))
-        per_view = _allocate(np.ones(len(views)), o.frames)
-        lo_d, hi_d = self.displacement
+        per_view = _allocate(np.ones(len(VIEWS)), o.frames)
+        hi_d = max(self.displacement[1], self.spacing)  # a colormap range, even at rest
         out_views = []
-        for (name, phase, direction, up), budget in zip(views, per_view, strict=True):
-            segs = schedules[phase]
-            # segment k renders f_k + 1 instants, its last one shared with segment k + 1
-            share = _allocate([self.weight(a, b) for a, b in segs], max(budget - 1, len(segs)))
-            windows_boxes = [boxes[f"{phase}_{k}"] for k in range(len(segs))]
+        for (name, phase, direction, up), budget in zip(VIEWS, per_view, strict=True):
+            # segment k renders f_k + 1 instants, its last one shared with segment k + 1: at
+            # most budget - 1 segments (neighbours merged, their regions together)
+            groups = np.array_split(np.arange(len(schedules[phase])), budget - 1)
+            segs = [(schedules[phase][g[0]][0], schedules[phase][g[-1]][1])
+                    for g in groups if len(g)]
+            windows_boxes = [[b for k in g for b in boxes[f"{phase}_{k}"]]
+                             for g in groups if len(g)]
+            share = _allocate([self.weight(a, b) for a, b in segs], budget - 1)
             lo, hi = self.framed(phase).T
             pad = o.margin * (hi - lo).max() * 0.5 + self.spacing
             camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)

@@ -200,3 +200,37 @@ def test_segments_cut_at_the_fast_phase():
     # the part before is too short for a segment of its own: the fast phase starts the window
     assert edges(_segments(0.0, 1.0, 4, (0.01, 0.4), 0.05)) == pytest.approx(
         [0, 0.4 / 3, 0.8 / 3, 0.4, 1])
+
+
+@pytest.mark.parametrize("frames", [6, 9, 13])
+def test_small_budgets_are_kept(frames):
+    spec = Oracle(collapse(), DT, BOUNDS, 0.01,
+                  OracleOptions(run="synthetic", frames=frames)).spec()
+    times = step_times(0.8, 1.3e-4)
+    assert sum(len(rendered(spec, v, times)) for v in spec.views) == frames
+
+
+def test_too_small_a_budget_is_refused():
+    with pytest.raises(ValueError, match="each of the 3 views needs at least 2 frames"):
+        OracleOptions(frames=5)
+
+
+def test_a_rollout_at_rest_still_gives_a_valid_spec():
+    still = np.repeat(collapse()[:1], 40, axis=0)
+    spec = Oracle(still, DT, BOUNDS, 0.01, OracleOptions(run="still")).spec()
+    assert all(v.range[1] > v.range[0] for v in spec.views)
+
+
+def test_an_early_kinetic_energy_spike_keeps_the_initiation_window_in_order():
+    """One particle flung at frame 1 peaks the kinetic energy before the bulk starts to move
+    (the speed scale's onset): the initiation window must still run forward."""
+    pos = np.repeat(collapse()[:1], 60, axis=0)
+    pos[1:, 0, 0] += 0.3  # one of the column's particles jumps 0.3 m between frames 0 and 1
+    t = np.arange(60) * DT
+    moving = np.clip(t - 0.1, 0.0, None)[:, None] * 0.5  # m: the rest slide from 0.1 s
+    pos[:, 1:, 0] += moving
+    o = Oracle(pos, DT, BOUNDS, 0.01, OracleOptions(run="spike"))
+    assert o.events.peak_s < o.events.onset_s  # the case
+    a, b = o.windows()["initiation"]
+    assert a < b and a <= o.events.onset_s
+    o.spec()  # valid: no window ends before it starts

@@ -50,6 +50,7 @@ class ChunkInfo:
     count: int  # particles
     nbytes: int  # wire bytes (header + arrays)
     particle_bytes: int  # array bytes per particle: positions + fields
+    prev_time_s: float | None = None  # simulated time of the step before, s
 
 
 @dataclass
@@ -81,7 +82,8 @@ def chunk_info(data: bytes) -> ChunkInfo:
     env = decode(data, ChunkMeta, expect=MessageKind.CHUNK)  # header and sizes, no data pass
     m = env.meta
     per_particle = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in env.arrays.values())
-    return ChunkInfo(m.step, m.rank, m.ranks, m.time_s, m.count, len(data), per_particle)
+    return ChunkInfo(m.step, m.rank, m.ranks, m.time_s, m.count, len(data), per_particle,
+                     m.prev_time_s)
 
 
 def load_run(path: str | Path, run: str | None = None) -> RunLog:
@@ -248,12 +250,13 @@ def total_particles(log: RunLog) -> tuple[int | None, str]:
         for c in log.chunks:
             by_step[c.step].append(c)
         for step, cs in sorted(by_step.items()):
-            request = log.spec.request(step, cs[0].time_s)
-            if (request is not None and request.regions is None
+            request = log.spec.request(step, cs[0].time_s, cs[0].prev_time_s)
+            if (request is not None and request.regions is None and request.decimate == 1
+                    and not request.visible_in
                     and {c.rank for c in cs} == set(range(cs[0].ranks))):
                 return (sum(c.count for c in {c.rank: c for c in cs}.values()),
                         f"chunk counts of step {step} (all {cs[0].ranks} rank(s); the spec "
-                        f"culls no particle at that step)")
+                        f"culls, decimates and hides no particle at that step)")
     return None, ("unknown: no run_start or complete set of rank_done events carries a particle "
                   "count, and no step has chunks of every rank that the logged spec leaves "
                   "unculled")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -145,6 +146,12 @@ def test_particle_total_from_rank_done_or_unculled_chunks(tmp_path):
     log = load_run(write_log(tmp_path / "a.mcap", spec=True, events=False))
     n, source = total_particles(log)  # the spec culls nothing: a complete step's chunks
     assert n == 2 * PER_CHUNK and "chunk counts of step 20" in source
+    spec = log.spec
+    for change in ({"decimate": 2}, {"occlusion_cull": True}):  # chunks hold only some
+        log.spec = dataclasses.replace(spec, views=tuple(
+            dataclasses.replace(v, **change) for v in spec.views))
+        assert total_particles(log)[0] is None
+    log.spec = spec
     log.events.append(Event(RUN, EventKind.RANK_DONE, 0, "", {"particles": 7}))
     log.events.append(Event(RUN, EventKind.RANK_DONE, 1, "", {"particles": 5}))
     assert total_particles(log) == (12, "sum of the rank_done events of 2 rank(s)")

@@ -58,9 +58,11 @@ def events_from_series(time_s: np.ndarray, speed_scale_m_s: np.ndarray,
     speed (m^2/s^2); the same rules for a rollout and for a run's in situ statistics."""
     t, scale, ke = (np.asarray(a, dtype=np.float64) for a in (time_s, speed_scale_m_s,
                                                               kinetic_m2_s2))
-    peak = int(np.argmax(ke))
     above = np.flatnonzero(scale >= ONSET_FRACTION * scale.max())
     onset = int(above[0]) if len(above) else 0
+    # the kinetic-energy peak of the flow: at or after the onset (a few particles flung
+    # before the bulk moves can carry an earlier, larger spike)
+    peak = onset + int(np.argmax(ke[onset:]))
     after = np.flatnonzero(ke[peak:] < REST_FRACTION * ke[peak])
     end = peak + int(after[0]) if len(after) else len(ke) - 1
     return Events(float(t[onset]), float(t[peak]), float(t[end]), float(t[-1]),

@@ -37,6 +37,7 @@ from protocol.log import read_log
 from protocol.messages import Chunk
 from protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
 from protocol.spec import ID_FIELD, Region, Spec, View
+from protocol.view import INSTANT_TOLERANCE
 from render_server.assemble import AssembledStep, StepAssembler
 from render_server.frames import render_views
 
@@ -204,9 +205,9 @@ def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list
             continue
         e, t0 = w.every_s, w.t_start_s
         s0, first_t, first_prev = steps[0]
-        k_lo = (math.floor((first_prev - t0) / e) + 1 if first_prev is not None
-                else math.ceil((first_t - t0) / e))
-        k_hi = math.floor((min(float(times[-1]), w.t_end_s) - t0) / e)
+        k_lo = (w.instant(first_prev) + 1 if first_prev is not None
+                else math.ceil((first_t - t0) / e - INSTANT_TOLERANCE))
+        k_hi = w.instant(float(times[-1]))
         done = {w.instant(t) for s, t, p in steps if w.wants(s, t, p)}
         instants.update(t0 + k * e for k in range(max(k_lo, 0), k_hi + 1) if k not in done)
     return sorted(missing) + [f"t={t:.6g} s" for t in sorted(instants)]

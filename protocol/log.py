@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -148,6 +147,16 @@ class LogWriter:
                 self._writer.finish()
                 self._file.close()
 
+    def abandon(self) -> None:
+        """Close the file as it is, without the MCAP summary (after a failed write: the file
+        reads like a cut-short one, its complete chunks and nothing after them)."""
+        with self._lock:
+            if not self._file.closed:
+                try:
+                    self._file.close()
+                except OSError:
+                    pass  # the buffered tail could not be written either: it is lost
+
     def __enter__(self) -> LogWriter:
         return self
 
@@ -176,7 +185,7 @@ class Recorder:
         self.writer = LogWriter(path, metadata={"run": run}, **writer_options)
         self._inbox = Inbox(session, keys.everything(run), capacity)
         self._stop = threading.Event()
-        self.write_errors = 0  # messages (or flushes) the file could not take
+        self.write_errors = 0  # messages not written after (and with) the first failed write
         self._thread = threading.Thread(target=self._loop, name="minority-recorder", daemon=True)
         self._thread.start()
 
@@ -195,16 +204,19 @@ class Recorder:
     def _loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=0.1)
+            if self.write_errors:  # the file ends at its first failed write
+                self.write_errors += item is not None
+                continue
             try:
                 if item is None:
                     self.writer.flush()
                 else:
                     self.writer.write_payload(item.key, item.payload, item.recv_ns)
-            except OSError as exc:  # e.g. a full disk: count, say once, keep receiving
+            except OSError as exc:  # e.g. a full disk: say it, count what is not written
                 self.write_errors += 1
-                if self.write_errors == 1:
-                    print(f"minority record: cannot write {self.writer.path}: {exc} "
-                          "(failures are counted)", file=sys.stderr, flush=True)
+                print(f"minority record: cannot write {self.writer.path}: {exc}; the log ends "
+                      "here (its complete chunks stay readable), later messages are counted "
+                      "as not written", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         """Stop receiving, write what is queued, finish the file."""
@@ -212,8 +224,21 @@ class Recorder:
         self._stop.set()
         self._thread.join()
         while (item := self._inbox.get(timeout=0)) is not None:
-            self.writer.write_payload(item.key, item.payload, item.recv_ns)
-        self.writer.close()
+            if self.write_errors:
+                self.write_errors += 1
+                continue
+            try:
+                self.writer.write_payload(item.key, item.payload, item.recv_ns)
+            except OSError:
+                self.write_errors += 1
+        if self.write_errors:
+            self.writer.abandon()
+            return
+        try:
+            self.writer.close()
+        except OSError:
+            self.write_errors += 1
+            self.writer.abandon()
 
 
 @dataclass(frozen=True)
@@ -259,7 +284,7 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
                 record = next(records)
             except StopIteration:
                 return
-            except (McapError, EOFError, struct.error, ValueError) as exc:
+            except Exception as exc:  # noqa: BLE001 - mcap, zstd and lz4 raise their own types
                 pos, size = f.tell(), os.fstat(f.fileno()).st_size
                 if pos < size:  # not a cut-short tail: a damaged record inside the file
                     warnings.warn(f"{path}: unreadable record before byte {pos} of {size} "

@@ -210,33 +210,40 @@ class RenderServer:
     def _receive_loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=RECEIVE_POLL_S)
-            drained = False
-            with self._lock:
-                done = self._assembler.expire(time.time_ns())
-                if item is not None:
-                    try:
-                        chunk = decode_as(item.payload, Chunk)
-                    except ProtocolError as exc:
-                        self.stats.rejected += 1
-                        self._error(f"rejected chunk on {item.key}: {exc}")
-                    except Exception as exc:  # noqa: BLE001 - the loop must outlive any chunk
-                        self.stats.rejected += 1
-                        self._error(f"chunk on {item.key} failed: {exc!r}")
-                    else:
-                        self.stats.chunks += 1
-                        self._ranks_expected = max(self._ranks_expected, chunk.ranks)
-                        r = chunk.rank
-                        self._rank_chunks_received[r] = self._rank_chunks_received.get(r, 0) + 1
-                        done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
-                done += self._settle_gone_ranks()
-                if (item is None and self._ranks_expected and not self._drained.is_set()
-                        and self._ranks_gone >= set(range(self._ranks_expected))):
-                    done += self._assembler.drain(time.time_ns())  # the run is over
-                    drained = True
+            try:
+                done, drained = self._receive(item)
+            except Exception as exc:  # noqa: BLE001 - the loop must outlive any chunk
+                self._error(f"receiving {item.key if item else 'nothing'} failed: {exc!r}")
+                continue
             for step in done:
                 self._latest.put(step)
             if drained:
                 self._drained.set()
+
+    def _receive(self, item) -> tuple[list[AssembledStep], bool]:
+        """Take one received chunk (or none, on a timeout): the steps now ready, and whether
+        the run is over and everything is released."""
+        drained = False
+        with self._lock:
+            done = self._assembler.expire(time.time_ns())
+            if item is not None:
+                try:
+                    chunk = decode_as(item.payload, Chunk)
+                except ProtocolError as exc:
+                    self.stats.rejected += 1
+                    self._error(f"rejected chunk on {item.key}: {exc}")
+                else:
+                    self.stats.chunks += 1
+                    self._ranks_expected = max(self._ranks_expected, chunk.ranks)
+                    r = chunk.rank
+                    self._rank_chunks_received[r] = self._rank_chunks_received.get(r, 0) + 1
+                    done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
+            done += self._settle_gone_ranks()
+            if (item is None and self._ranks_expected and not self._drained.is_set()
+                    and self._ranks_gone >= set(range(self._ranks_expected))):
+                done += self._assembler.drain(time.time_ns())  # the run is over
+                drained = True
+        return done, drained
 
     def _render_loop(self) -> None:
         while not self._stop.is_set():

@@ -114,7 +114,7 @@ class PublishStats:
     scheduled: int = 0  # chunks the spec's schedule asked for
     sent: int = 0  # handed to zenoh (and recorded)
     recorded: int = 0  # messages written to the rank's MCAP record
-    record_errors: int = 0  # messages the record could not take (e.g. a full disk)
+    record_errors: int = 0  # messages not recorded: the first failed write (a full disk) on
     bad_specs: int = 0  # spec updates that did not decode (the rank kept its spec)
     dropped_no_server: int = 0  # no zenoh session (nothing to send to)
     dropped_outbox: int = 0  # the outbox was full: the server (or the disk) fell behind
@@ -349,9 +349,14 @@ class RankPublisher:
                 self._outbox.done()
 
     def _record(self, item: OutboxItem) -> int:
-        """Write the message to the rank's record; 1 if written. A write error (a full disk)
-        is counted and said once; publishing goes on."""
+        """Write the message to the rank's record; 1 if written. The record ends at its first
+        failed write (a full disk; what follows a partial write could not be read back):
+        that message and the later ones are counted in record_errors; publishing goes on."""
         if self._writer is None:
+            return 0
+        if self.stats.record_errors:
+            with self._lock:
+                self.stats.record_errors += 1
             return 0
         try:
             self._writer.write_payload(item.key, bytes(item.payload))
@@ -359,10 +364,8 @@ class RankPublisher:
         except OSError as exc:
             with self._lock:
                 self.stats.record_errors += 1
-                first = self.stats.record_errors == 1
-            if first:
-                print(f"minority sim: rank {self.rank}: cannot write its record: {exc} "
-                      "(publishing goes on; failures are counted)", file=self.log, flush=True)
+            print(f"minority sim: rank {self.rank}: cannot write its record: {exc}; the record "
+                  "ends here, publishing goes on", file=self.log, flush=True)
             return 0
 
     def _send(self, item: OutboxItem) -> str:
@@ -427,7 +430,15 @@ class RankPublisher:
         if self._thread is not None:
             self._thread.join(timeout=self.options.drain_timeout_s)
         if self._writer is not None and (self._thread is None or not self._thread.is_alive()):
-            self._writer.close()
+            if self.stats.record_errors:
+                self._writer.abandon()  # no summary after the failed write
+            else:
+                try:
+                    self._writer.close()
+                except OSError as exc:
+                    print(f"minority sim: rank {self.rank}: cannot finish its record: {exc}",
+                          file=self.log, flush=True)
+                    self._writer.abandon()
         return self.stats
 
     def summary(self) -> dict:

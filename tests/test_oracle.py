@@ -230,7 +230,12 @@ def test_an_early_kinetic_energy_spike_keeps_the_initiation_window_in_order():
     moving = np.clip(t - 0.1, 0.0, None)[:, None] * 0.5  # m: the rest slide from 0.1 s
     pos[:, 1:, 0] += moving
     o = Oracle(pos, DT, BOUNDS, 0.01, OracleOptions(run="spike"))
-    assert o.events.peak_s < o.events.onset_s  # the case
+    ke = o.events.kinetic_m2_s2
+    assert np.argmax(ke) * DT < o.events.onset_s  # the case: the spike comes first
+    assert o.events.peak_s >= o.events.onset_s  # the flow's peak, not the spike's
     a, b = o.windows()["initiation"]
     assert a < b and a <= o.events.onset_s
+    lo, hi = o.fast_phase()
+    ra, rb = o.windows()["runout"]
+    assert ra <= lo + DT and rb >= hi - DT  # the runout views cover the bulk's motion
     o.spec()  # valid: no window ends before it starts

@@ -110,7 +110,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
                                                      shadows=args.shadows))
     except OSError as exc:
-        print(f"minority serve: error: cannot write the log {record}: {exc}", file=sys.stderr)
+        print(f"minority serve: error: cannot start: {exc}", file=sys.stderr)
         session.close()
         return 1
     stop = _stop_on_signals()

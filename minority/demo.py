@@ -42,6 +42,11 @@ class DemoOptions:
     checkpoint: Path = CHECKPOINT
     timeout_s: float = 600.0  # the sim's wall-clock limit
 
+    def __post_init__(self) -> None:
+        from gns.oracle import OracleOptions
+
+        OracleOptions(frames=self.frames)  # a budget the oracle refuses fails now, not later
+
 
 def demo_column(o: DemoOptions) -> str:
     """The showcase column (column_13k's geometry and material) at the demo's resolution;

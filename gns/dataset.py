@@ -25,6 +25,7 @@ import numpy as np
 FORMAT = "minority-gns-dataset/1"
 SPLITS = ("train", "valid", "test")
 INPUT_VELOCITIES = 5  # C: velocities of the last C frames are node features
+STD_FLOOR = 1e-12  # m/frame (or m/frame^2): a component that never varies still normalizes
 
 
 class DatasetError(ValueError):
@@ -93,8 +94,12 @@ def _stats(trajs: list[np.ndarray]) -> dict:
         nv += v.shape[0] * v.shape[1]
         na += a.shape[0] * a.shape[1]
     vm, am = vel_sum / nv, acc_sum / na
-    return {"vel_mean": vm.tolist(), "vel_std": np.sqrt(vel_sq / nv - vm * vm).tolist(),
-            "acc_mean": am.tolist(), "acc_std": np.sqrt(acc_sq / na - am * am).tolist()}
+
+    def std(sq, n, mean):  # the variance clipped at 0 (cancellation), the std kept above 0
+        return np.maximum(np.sqrt(np.maximum(sq / n - mean * mean, 0.0)), STD_FLOOR).tolist()
+
+    return {"vel_mean": vm.tolist(), "vel_std": std(vel_sq, nv, vm),
+            "acc_mean": am.tolist(), "acc_std": std(acc_sq, na, am)}
 
 
 def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
@@ -147,7 +152,8 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
         "particle_spacing_m": spacing.pop(), "frame_interval_s": frame_dt.pop(),
         "coarse_grain": coarse_grain,
         **_stats(train_pos),
-        "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)),
+        # one friction angle in every train scene: the feature is 0, its scale 1 (not 0/0)
+        "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)) or 1.0,
         "scenes": scenes, "config": str(config_path),
         "units": {"positions": "m", "velocity": "m/frame", "acceleration": "m/frame^2",
                   "frame_interval_s": "s", "friction": "deg"},

@@ -96,6 +96,17 @@ def write_vtk_series(directory: str | Path, positions: np.ndarray, frame_interva
     return pvd
 
 
+def _attribute(value):
+    """An HDF5 attribute: JSON objects and lists decoded, other text (e.g. a scene's TOML,
+    which may start with "[domain]") as it is."""
+    if isinstance(value, str) and value[:1] in ("[", "{"):
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    return value
+
+
 def read_rollout(path: str | Path) -> dict:
     """A rollout written by write_hdf5, or an MPM run's HDF5 (`minority sim`, frames every
     output_interval_s): positions [frames, n, 3] (m), frame_interval_s (s), bounds_m [3, 2]
@@ -106,8 +117,7 @@ def read_rollout(path: str | Path) -> dict:
             if fmt not in (ROLLOUT_FORMAT, SIM_FORMAT):
                 raise ValueError(f"{path}: not a rollout (format {fmt!r}, expected "
                                  f"{ROLLOUT_FORMAT!r} or an MPM run's {SIM_FORMAT!r})")
-            out = {k: (json.loads(v) if isinstance(v, str) and v[:1] in "[{" else v)
-                   for k, v in f.attrs.items()}
+            out = {k: _attribute(v) for k, v in f.attrs.items()}
             out["positions"] = f["positions"][()]
             if fmt == SIM_FORMAT:  # an MPM run (e.g. a coarse one) as the prediction
                 out["frame_interval_s"] = float(out["output_interval_s"])

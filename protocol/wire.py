@@ -262,7 +262,10 @@ def decode(payload, meta_type: Any = dict, expect: MessageKind | None = None) ->
             if dt.kind == "f":
                 float_lo, float_hi = min(float_lo, start), start + nbytes
         else:
-            arrays[name] = np.empty(shape, dtype=dt)
+            try:  # no elements, no bytes; numpy still refuses absurd other dimensions
+                arrays[name] = np.empty(shape, dtype=dt)
+            except ValueError as exc:
+                raise ProtocolError(f"array {name!r}: shape {list(shape)} ({exc})") from None
         end = start + nbytes
     if end != total:
         raise ProtocolError(f"arrays end at byte {end} but the payload is {total} bytes")

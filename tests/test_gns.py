@@ -15,7 +15,7 @@ from gns.export import write_vtk_series
 from gns.model import GNS, ModelConfig
 from gns.rollout import RolloutError, initial_state, rollout
 from gns.sweep import ScenePlan, load_config, plan
-from gns.train import TrainConfig, load_checkpoint, train
+from gns.train import TrainConfig, combined_stats, load_checkpoint, train
 
 SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
 
@@ -367,3 +367,32 @@ def test_evaluate_and_validation_measure_the_same_rollout_error(dataset, tmp_pat
     val = rollout_error(model, load_split(path, "valid")[0], 10_000)
     assert row["mean_position_error_m"] == pytest.approx(val["error_m"], rel=1e-12)
     assert row["relative_error"]["runout"] == pytest.approx(val["runout"], rel=1e-12)
+
+
+def test_one_friction_angle_and_a_still_axis_give_finite_features(tmp_path):
+    """Every train scene at 30 deg (friction std 0) and no motion along y (velocity and
+    acceleration std 0 there): the statistics stay positive, the model's inputs finite."""
+    rng = np.random.default_rng(3)
+    runs = []
+    for i in range(2):
+        p = tmp_path / f"r{i}.h5"
+        _fake_run(p, rng, phi=30.0)
+        with h5py.File(p, "a") as f:
+            pos = f["positions"][()]
+            pos[:, :, 1] = pos[:1, :, 1]  # y never changes
+            f["positions"][...] = pos
+        runs.append((_plan(f"train_{i}", "train"), p))
+    meta = build(runs, tmp_path / "ds", stride=2, connectivity_radius_m=0.029)
+    assert meta["friction_std_deg"] == 1.0
+    assert min(meta["vel_std"] + meta["acc_std"]) > 0.0
+    model = GNS(ModelConfig(latent=8, message_passing=1), combined_stats(meta, 0.0))
+    traj = load_split(tmp_path / "ds", "train")[0]
+    pos = torch.as_tensor(np.transpose(traj.positions[:6], (1, 0, 2)), dtype=torch.float32)
+    from gns.graph import radius_graph
+
+    s, r = radius_graph(traj.positions[5].astype(np.float64), 0.029)
+    with torch.no_grad():
+        nodes, edges = model.features(pos, torch.full((pos.shape[0],), 30.0),
+                                      torch.as_tensor(traj.bounds_m, dtype=torch.float32),
+                                      torch.as_tensor(s), torch.as_tensor(r))
+    assert torch.isfinite(nodes).all() and torch.isfinite(edges).all()

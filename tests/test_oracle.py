@@ -183,10 +183,13 @@ def test_an_mpm_run_reads_as_a_prediction(tmp_path):
     with h5py.File(tmp_path / "mpm.h5", "w") as f:
         f["positions"] = pos.astype(np.float32)
         f.attrs.update({"format": SIM_FORMAT, "output_interval_s": 0.02,
-                        "bounds_m": BOUNDS, "particle_spacing_m": 0.01})
+                        "bounds_m": BOUNDS, "particle_spacing_m": 0.01,
+                        "scene_toml": "[domain]\nsize_m = [1.0, 0.2, 0.4]\n",  # not JSON
+                        "units": '{"positions": "m"}', "note": ""})
     r = read_rollout(tmp_path / "mpm.h5")
     assert r["frame_interval_s"] == 0.02 and r["positions"].shape == pos.shape
-    assert r["bounds_m"].shape == (3, 2)
+    assert r["bounds_m"].shape == (3, 2) and r["units"] == {"positions": "m"}
+    assert r["scene_toml"].startswith("[domain]") and r["note"] == ""
 
 
 def test_segments_cut_at_the_fast_phase():

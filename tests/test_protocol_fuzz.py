@@ -110,3 +110,18 @@ def test_fuzz_decoder_raises_only_protocol_error(name):
         except Exception as exc:  # noqa: BLE001 - the point of the test
             pytest.fail(f"case {i}: {type(exc).__name__}: {exc} for payload {payload[:96]!r}")
     assert rejected > CASES_PER_DECODER // 2  # the mutations really are hostile
+
+
+def test_an_empty_array_with_absurd_dimensions_is_a_protocol_error():
+    """Zero elements pass the size checks, but numpy refuses the shape: still ProtocolError."""
+    import numpy as np
+
+    from protocol.wire import MessageKind, decode, encode
+
+    payload = bytes(encode(MessageKind.CHUNK, {"a": 1},
+                           {"x": np.empty((0, 2**35, 10**7), np.float32)}))
+    shape = b"[0,34359738368,10000000]"
+    assert shape in payload  # the same header length with a larger last dimension:
+    bad = payload.replace(shape, b"[0,34359738368,99999999]")
+    with pytest.raises(ProtocolError, match="array 'x': shape"):
+        decode(bad)

@@ -161,7 +161,7 @@ def _get(table: dict, key: str, where: str, kind, default=None, required=True):
     value = table[key]
     try:
         if kind == "vec3":
-            if len(value) != 3:
+            if isinstance(value, str | dict) or len(value) != 3:
                 raise TypeError
             out = tuple(float(v) for v in value)
         elif kind == "float":
@@ -176,13 +176,29 @@ def _get(table: dict, key: str, where: str, kind, default=None, required=True):
             if not isinstance(value, str):
                 raise TypeError
             out = value
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneError(f"key '{name}' must be a {kind}, got {value!r}") from None
     if kind in ("float", "vec3"):
         values = out if kind == "vec3" else (out,)
         if not all(math.isfinite(v) for v in values):
             raise SceneError(f"key '{name}' must be finite, got {value!r}")
     return out
+
+
+def _table(data: dict, key: str) -> dict:
+    """An optional table ({} when absent) that must be a table when present."""
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise SceneError(f"'{key}' must be a table ([{key}]), got {value!r}")
+    return value
+
+
+def _tables(data: dict, key: str) -> list[dict]:
+    """An optional array of tables ([] when absent), written [[key]]."""
+    value = data.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
+        raise SceneError(f"'{key}' must be an array of tables ([[{key}]]), got {value!r}")
+    return value
 
 
 def _check_keys(table: dict, allowed: set[str], where: str) -> None:
@@ -301,19 +317,19 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
         raise SceneError("missing table 'material'")
     material = _parse_material(data["material"])
 
-    particles = data.get("particles", {})
+    particles = _table(data, "particles")
     _check_keys(particles, {"per_cell_per_axis"}, "particles")
     ppc = _get(particles, "per_cell_per_axis", "particles", "int", default=2)
     if not 1 <= ppc <= MAX_PARTICLES_PER_CELL_PER_AXIS:
         raise SceneError(f"key 'particles.per_cell_per_axis' must be in "
                          f"[1, {MAX_PARTICLES_PER_CELL_PER_AXIS}], got {ppc}")
 
-    body_tables = data.get("body")
-    if not isinstance(body_tables, list) or not body_tables:
+    body_tables = _tables(data, "body")
+    if not body_tables:
         raise SceneError("missing array of tables 'body' (use [[body]])")
     bodies = tuple(_parse_body(t, i, size_m) for i, t in enumerate(body_tables))
 
-    boundary = data.get("boundary", {})
+    boundary = _table(data, "boundary")
     _check_keys(boundary, set(FACES) | {"friction"}, "boundary")
     base = _get(boundary, "friction", "boundary", "float", default=DEFAULT_FACE_FRICTION)
     face_friction = {}
@@ -322,7 +338,7 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
         if mu < 0.0:
             raise SceneError(f"key 'boundary.{face}' must be >= 0")
         face_friction[face] = mu
-    walls = tuple(_parse_wall(t, i, size_m) for i, t in enumerate(data.get("wall", [])))
+    walls = tuple(_parse_wall(t, i, size_m) for i, t in enumerate(_tables(data, "wall")))
 
     time = data.get("time")
     if not isinstance(time, dict):
@@ -334,7 +350,7 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
     cfl = _get(time, "cfl", "time", "float", default=DEFAULT_CFL)
     if not 0.0 < cfl <= MAX_CFL:
         raise SceneError(f"key 'time.cfl' must be in (0, {MAX_CFL}], got {cfl}")
-    numerics = data.get("numerics", {})
+    numerics = _table(data, "numerics")
     _check_keys(numerics, {"flip"}, "numerics")
     flip = _get(numerics, "flip", "numerics", "float", default=DEFAULT_FLIP)
     if not 0.0 <= flip <= 1.0:

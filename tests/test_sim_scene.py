@@ -66,3 +66,30 @@ def test_scene_error_is_value_error_and_missing_table():
         loads_scene("[domain\n")
     with pytest.raises(SceneError, match="cannot read"):
         load_scene("/nonexistent/scene.toml")
+
+
+@pytest.mark.parametrize("table,top,match", [
+    ("[particles]\nper_cell_per_axis = 2\n", "particles = 2", "'particles' must be a table"),
+    ("[numerics]\nflip = 0.99\n", "numerics = 1", "'numerics' must be a table"),
+    ("[boundary]\nfriction = 0.5\ny_min = 0.0\ny_max = 0.0\n", "boundary = [1, 2]",
+     "'boundary' must be a table"),
+    ("", "wall = 3", r"'wall' must be an array of tables \(\[\[wall\]\]\)"),
+    ("", "[wall]\naxis = \"x\"", r"'wall' must be an array of tables"),
+])
+def test_a_table_written_as_something_else_is_named(table, top, match):
+    text = channel_column_toml(ColumnSpec())
+    assert table in text
+    body = text.replace(table, "")
+    text = (top + "\n" + body) if not top.startswith("[") else (body + "\n" + top + "\n")
+    with pytest.raises(SceneError, match=match):
+        loads_scene(text)
+
+
+@pytest.mark.parametrize("old,new,key", [
+    ("per_cell_per_axis = 2", "per_cell_per_axis = inf", "particles.per_cell_per_axis"),
+    ("size_m = [0.4, 0.04, 0.16]", 'size_m = "123"', "domain.size_m"),
+])
+def test_values_of_the_wrong_kind_are_named(old, new, key):
+    text = channel_column_toml(ColumnSpec())
+    with pytest.raises(SceneError, match=f"key '{key}' must be a"):
+        loads_scene(text.replace(old, new))

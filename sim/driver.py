@@ -255,7 +255,10 @@ class Simulator:
         self.step_count += 1
         self.time_s += dt
         if self._stats[1] > 0:
-            self.check_finite()
+            self.check_finite()  # a non-finite particle field: named
+            raise NonFiniteError(  # or the grid's velocity was not finite where they read it
+                f"non-finite grid velocity at step {self.step_count} (t = {self.time_s:.6g} s): "
+                f"{int(self._stats[1])} particles could not be updated")
         self.clamp_count += int(self._stats[2])
         self.max_speed_m_s = math.sqrt(self._stats[0])
 

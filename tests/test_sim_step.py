@@ -190,6 +190,23 @@ def test_nonfinite_guard_names_step_particle_and_field():
     assert not np.isfinite(sim.particles.v[slot]).all()
 
 
+def test_particles_g2p_could_not_update_stop_the_run(monkeypatch):
+    """G2P leaves a particle that read a non-finite grid velocity where it was (finite) and
+    counts it: the run stops naming the count, not going on with frozen particles."""
+    sim = Simulator(load_scene(builtin_scene_path("tiny")))
+    sim.advance_to(0.01)
+    real = kernels.g2p
+
+    def skipping(*args):
+        real(*args)
+        args[-1][1] = 3.0  # out_stats[1]: particles skipped
+
+    monkeypatch.setattr(kernels, "g2p", skipping)
+    with pytest.raises(NonFiniteError, match=r"non-finite grid velocity at step \d+ .*: 3 "
+                                             r"particles could not be updated"):
+        sim.step(sim.next_dt(1.0))
+
+
 def test_find_nonfinite_reports_first_slot_and_field():
     ps = seed_particles(load_scene(builtin_scene_path("tiny")))
     assert kernels.find_nonfinite(ps.x, ps.v, ps.C, ps.F, ps.tau) == (-1, -1)

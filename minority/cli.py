@@ -211,6 +211,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _replay_publish(args: argparse.Namespace) -> int:
 
     from minority.replay import NoServer, ReplayError, publish
+    from protocol.errors import ProtocolError
     from protocol.session import Role, options_from_args
 
     opts = options_from_args(args)
@@ -221,7 +222,7 @@ def _replay_publish(args: argparse.Namespace) -> int:
     stop = _stop_on_signals()
     try:
         s = publish(args.log, session, args.rate, args.run, args.wait, stop)
-    except ReplayError as exc:
+    except (ReplayError, ProtocolError) as exc:
         print(f"minority replay: error: {exc}", file=sys.stderr)
         return 1 if isinstance(exc, NoServer) else 2
     finally:

@@ -22,12 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol.errors import ProtocolError, SpecError
-from protocol.log import REJECTED_TOPIC, read_log
+from protocol.log import MCAP_MAGIC, REJECTED_TOPIC, read_log
 from protocol.messages import ChunkMeta, Event, EventKind, Timing
 from protocol.spec import Spec
 from protocol.wire import MessageKind, decode
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 MAX_STEP_ROWS = 200  # per-step table rows printed (first and last half beyond that)
 MAX_LISTED = 20  # step numbers listed inline
 MAX_TICKS = 12  # step labels on a plot's x axis

@@ -263,6 +263,9 @@ class LogRecord:
         return cls.from_json(obj, self.publish_ns)
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first 8 bytes of every MCAP file
+
+
 class LogDamagedWarning(RuntimeWarning):
     """read_log stopped at a damaged record inside a log (not at a cut-short tail)."""
 
@@ -272,12 +275,17 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
     """Iterate stored messages in file order, filtered by topic (exact or glob, e.g.
     `minority/*/chunk`) and log time in [start_ns, end_ns). A file cut short (a killed
     recorder) yields every message of its completed chunks, then stops; a damaged chunk
-    inside the file (its CRC does not match) stops it too, with a LogDamagedWarning."""
+    inside the file (its CRC does not match) stops it too, with a LogDamagedWarning. A file
+    that is not MCAP raises ProtocolError."""
     patterns = list(topics) if topics is not None else None
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     wanted: dict[int, bool] = {}
     with open(path, "rb") as f:
+        magic = f.read(len(MCAP_MAGIC))
+        if len(magic) == len(MCAP_MAGIC) and magic != MCAP_MAGIC:
+            raise ProtocolError(f"{path}: not an MCAP file (no MCAP magic at its start)")
+        f.seek(0)
         records = StreamReader(f, validate_crcs=True).records
         while True:
             try:

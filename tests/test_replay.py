@@ -17,14 +17,13 @@ from minority.cli import main
 from minority.replay import (
     REPLAY_QOS,
     UNRECORDED,
-    ReplayError,
     covered,
     log_specs,
     missing_data,
     replay,
     unrecorded,
 )
-from protocol import Frame, Spec, keys
+from protocol import Frame, ProtocolError, Spec, keys
 from protocol.log import read_log
 from protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from protocol.spec import Region, View
@@ -189,9 +188,12 @@ def test_bad_input_exits_2(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "none.mcap")]) == 2
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file")
     assert main(["replay", str(tmp_path / "junk.mcap"), "-q"]) == 2
-    assert "no chunks and no spec" in capsys.readouterr().err
-    with pytest.raises(ReplayError):
+    assert "junk.mcap: not an MCAP file" in capsys.readouterr().err
+    with pytest.raises(ProtocolError, match="not an MCAP file"):
         replay(tmp_path / "junk.mcap", out=tmp_path / "out")
+    (tmp_path / "empty.mcap").write_bytes(b"")  # a recorder killed at once: nothing in it
+    assert main(["replay", str(tmp_path / "empty.mcap"), "-q"]) == 2
+    assert "no chunks and no spec" in capsys.readouterr().err
 
 
 def box(name, lo, hi) -> Region:

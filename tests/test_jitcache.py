@@ -1,0 +1,64 @@
+"""numba's cache=True misses edits to a callee's file; protocol.jitcache drops it."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+from protocol.jitcache import MARKER, drop_stale_numba_cache, sources_digest
+
+PACKAGE_INIT = textwrap.dedent("""
+    from pathlib import Path
+    from protocol.jitcache import drop_stale_numba_cache
+    drop_stale_numba_cache(Path(__file__).parent)
+""")
+CALLER = textwrap.dedent("""
+    from numba import njit
+    from pkg.callee import value
+
+    @njit(cache=True)
+    def caller():
+        return value() + 0
+""")
+CALLEE = "from numba import njit\n\n@njit(cache=True, inline='always')\ndef value():\n    return {}\n"
+
+
+def _run_caller(root) -> int:
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = os.pathsep.join([str(root), os.getcwd()])
+    out = subprocess.run([sys.executable, "-c", "from pkg.caller import caller; print(caller())"],
+                         env=env, capture_output=True, text=True, timeout=120, check=True)
+    return int(out.stdout.strip())
+
+
+def test_edit_of_a_callee_file_reaches_the_cached_caller(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(PACKAGE_INIT)
+    (pkg / "caller.py").write_text(CALLER)
+    (pkg / "callee.py").write_text(CALLEE.format(1))
+    assert _run_caller(tmp_path) == 1
+    assert list((pkg / "__pycache__").glob("caller.*.nbi"))  # the caller was cached
+    (pkg / "callee.py").write_text(CALLEE.format(2))  # caller.py untouched
+    assert _run_caller(tmp_path) == 2  # without the guard numba returns the stale 1
+
+
+def test_drop_keeps_a_matching_cache_and_respects_numba_cache_dir(tmp_path, monkeypatch):
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    (tmp_path / "a.py").write_text("x = 1\n")
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    (cache / "a.f-1.py311.nbi").write_bytes(b"index")
+    assert drop_stale_numba_cache(tmp_path)  # no marker yet: dropped
+    assert not list(cache.glob("*.nbi"))
+    assert (cache / MARKER).read_text() == sources_digest(tmp_path)
+    (cache / "a.f-1.py311.nbi").write_bytes(b"index")
+    assert not drop_stale_numba_cache(tmp_path)  # sources unchanged: kept
+    assert list(cache.glob("*.nbi"))
+    (tmp_path / "a.py").write_text("x = 2\n")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    assert not drop_stale_numba_cache(tmp_path)  # the user's own cache dir: untouched
+    assert list(cache.glob("*.nbi"))
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert drop_stale_numba_cache(tmp_path)  # edited: dropped
+    assert not list(cache.glob("*.nbi"))

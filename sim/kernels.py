@@ -34,7 +34,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from sim.plasticity import elastoplastic_update, elastoplastic_update_scalar
+from sim.plasticity import (
+    elastoplastic_update,
+    elastoplastic_update_scalar,
+    elastoplastic_update_series,
+)
 
 BLOCK_CELLS = 4  # block edge in cells (>= 2: a node is covered by at most 2 blocks per axis)
 BIN_CHUNKS = 16  # chunks of the parallel counting sort (fixed: the sort is the serial one)
@@ -354,6 +358,8 @@ def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, flip
     nchunks = (n + G2P_CHUNK - 1) // G2P_CHUNK
     chunk_stats = np.zeros((nchunks, 3))  # per chunk: max |v|^2, non-finite, clamped
     cs = APIC_D_INV * inv_dx  # C = (4 / dx^2) sum w v (x_i - x_p) = (4 / dx) sum w v d
+    gf = grid.reshape(-1)  # flat [nx * ny * nz * GRID_FIELDS] view: one offset per z row
+    gny, gnz = grid.shape[1], grid.shape[2]
     for ch in prange(nchunks):
         cvmax2 = 0.0
         cbad = 0
@@ -379,24 +385,20 @@ def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, flip
                 sx = sy = sz = 0.0  # sum of wy wz n_z g
                 rx = ry = rz = 0.0  # sum of wy wz dv
                 for j in range(3):
-                    gi, gj = bx + i, by + j
-                    g0x, g0y, g0z = grid[gi, gj, bz, 0], grid[gi, gj, bz, 1], grid[gi, gj, bz, 2]
-                    g1x, g1y, g1z = (grid[gi, gj, bz + 1, 0], grid[gi, gj, bz + 1, 1],
-                                     grid[gi, gj, bz + 1, 2])
-                    g2x, g2y, g2z = (grid[gi, gj, bz + 2, 0], grid[gi, gj, bz + 2, 1],
-                                     grid[gi, gj, bz + 2, 2])
+                    o0 = (((bx + i) * gny + by + j) * gnz + bz) * GRID_FIELDS  # node (i, j, 0)
+                    o1, o2 = o0 + GRID_FIELDS, o0 + 2 * GRID_FIELDS  # nodes (i, j, 1), (i, j, 2)
+                    g0x, g0y, g0z = gf[o0], gf[o0 + 1], gf[o0 + 2]
+                    g1x, g1y, g1z = gf[o1], gf[o1 + 1], gf[o1 + 2]
+                    g2x, g2y, g2z = gf[o2], gf[o2 + 1], gf[o2 + 2]
                     kx = wz0 * g0x + wz1 * g1x + wz2 * g2x
                     ky = wz0 * g0y + wz1 * g1y + wz2 * g2y
                     kz = wz0 * g0z + wz1 * g1z + wz2 * g2z
                     nx_ = wz1b * g1x + wz2b * g2x
                     ny_ = wz1b * g1y + wz2b * g2y
                     nz_ = wz1b * g1z + wz2b * g2z
-                    lx = (wz0 * grid[gi, gj, bz, 4] + wz1 * grid[gi, gj, bz + 1, 4]
-                          + wz2 * grid[gi, gj, bz + 2, 4])
-                    ly = (wz0 * grid[gi, gj, bz, 5] + wz1 * grid[gi, gj, bz + 1, 5]
-                          + wz2 * grid[gi, gj, bz + 2, 5])
-                    lz = (wz0 * grid[gi, gj, bz, 6] + wz1 * grid[gi, gj, bz + 1, 6]
-                          + wz2 * grid[gi, gj, bz + 2, 6])
+                    lx = wz0 * gf[o0 + 4] + wz1 * gf[o1 + 4] + wz2 * gf[o2 + 4]
+                    ly = wz0 * gf[o0 + 5] + wz1 * gf[o1 + 5] + wz2 * gf[o2 + 5]
+                    lz = wz0 * gf[o0 + 6] + wz1 * gf[o1 + 6] + wz2 * gf[o2 + 6]
                     wy = wy0 if j == 0 else (wy1 if j == 1 else wy2)
                     wyn = wy * j
                     rx += wy * lx
@@ -473,16 +475,19 @@ def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, flip
             f20 = e20 + dt * c20 * e00 + dt * c21 * e10 + dt * c22 * e20
             f21 = e21 + dt * c20 * e01 + dt * c21 * e11 + dt * c22 * e21
             f22 = e22 + dt * c20 * e02 + dt * c21 * e12 + dt * c22 * e22
-            if not elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22,
+            # the series path succeeds only on a finite state with finite results
+            if not elastoplastic_update_series(f00, f01, f02, f10, f11, f12, f20, f21, f22,
                                                F, tau, p, lam, mu, alpha):
-                _collapsed_update(f00, f01, f02, f10, f11, f12, f20, f21, f22, F[p],
-                                  tau[p], lam, mu, alpha)
-            fsum = 0.0
-            for r in range(3):
-                for q in range(3):
-                    fsum += F[p, r, q] + tau[p, r, q]
-            if not math.isfinite(fsum):
-                cbad += 1
+                if not elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21,
+                                                   f22, F, tau, p, lam, mu, alpha):
+                    _collapsed_update(f00, f01, f02, f10, f11, f12, f20, f21, f22, F[p],
+                                      tau[p], lam, mu, alpha)
+                fsum = 0.0
+                for r in range(3):
+                    for q in range(3):
+                        fsum += F[p, r, q] + tau[p, r, q]
+                if not math.isfinite(fsum):
+                    cbad += 1
         chunk_stats[ch, 0] = cvmax2
         chunk_stats[ch, 1] = cbad
         chunk_stats[ch, 2] = cclamp

@@ -228,3 +228,142 @@ def elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_o
     tau_out[p, 1, 2] = tau12
     tau_out[p, 2, 1] = tau12
     return True
+
+
+# Series path (no eigen-solve) for small elastic strains: |Y|_F <= SERIES_MAX_Y, where
+# Y = (b - I)(b + I)^-1 and log b = 2 atanh(Y) = 2 (Y + Y^3/3 + Y^5/5 + Y^7/7 + ...).
+# Truncation after Y^7: error <= 2 |Y|^9 / 9 ~ 2e-19 (strain) at the bound; the plastic
+# increment D (|D| <= |eps| ~ |Y|) enters as exp(D) by Taylor through D^6 / 6!
+# (error <= |D|^7 / 7! ~ 2e-18). Beyond the bound the eigen path above runs.
+SERIES_MAX_Y = 1e-2
+
+
+@njit(cache=True, inline="always")
+def _sym_mul(a00, a01, a02, a11, a12, a22, b00, b01, b02, b11, b12, b22):
+    """Upper triangle of A B for commuting symmetric A, B (the product is symmetric)."""
+    return (a00 * b00 + a01 * b01 + a02 * b02,
+            a00 * b01 + a01 * b11 + a02 * b12,
+            a00 * b02 + a01 * b12 + a02 * b22,
+            a01 * b01 + a11 * b11 + a12 * b12,
+            a01 * b02 + a11 * b12 + a12 * b22,
+            a02 * b02 + a12 * b12 + a22 * b22)
+
+
+@njit(cache=True, inline="always")
+def _hencky_series(x00, x01, x02, x11, x12, x22):
+    """Hencky strain eps = log(b) / 2 = atanh(Y) for b = I + X (X symmetric, |X| small),
+    by the series: returns (ok, eps00, eps01, eps02, eps11, eps12, eps22); ok is False (and
+    eps meaningless) when |Y|_F > SERIES_MAX_Y."""
+    m00, m11, m22 = 2.0 + x00, 2.0 + x11, 2.0 + x22  # M = b + I, inverted by cofactors
+    c00 = m11 * m22 - x12 * x12
+    c01 = x02 * x12 - x01 * m22
+    c02 = x01 * x12 - x02 * m11
+    c11 = m00 * m22 - x02 * x02
+    c12 = x01 * x02 - m00 * x12
+    c22 = m00 * m11 - x01 * x01
+    inv_det = 1.0 / (m00 * c00 + x01 * c01 + x02 * c02)
+    y00, y01, y02, y11, y12, y22 = _sym_mul(x00, x01, x02, x11, x12, x22, c00 * inv_det,
+                                            c01 * inv_det, c02 * inv_det, c11 * inv_det,
+                                            c12 * inv_det, c22 * inv_det)
+    z00, z01, z02, z11, z12, z22 = _sym_mul(y00, y01, y02, y11, y12, y22,
+                                            y00, y01, y02, y11, y12, y22)
+    if not z00 + z11 + z22 <= SERIES_MAX_Y * SERIES_MAX_Y:  # |Y|_F^2 = tr(Y^2); NaN fails
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    # P = I + Z/3 + Z^2/5 + Z^3/7 by Horner; eps = Y P
+    s7 = 1.0 / 7.0  # folded: multiplications, not divisions
+    p00, p01, p02 = s7 * z00 + 0.2, s7 * z01, s7 * z02
+    p11, p12, p22 = s7 * z11 + 0.2, s7 * z12, s7 * z22 + 0.2
+    p00, p01, p02, p11, p12, p22 = _sym_mul(z00, z01, z02, z11, z12, z22,
+                                            p00, p01, p02, p11, p12, p22)
+    p00, p11, p22 = p00 + 1.0 / 3.0, p11 + 1.0 / 3.0, p22 + 1.0 / 3.0
+    p00, p01, p02, p11, p12, p22 = _sym_mul(z00, z01, z02, z11, z12, z22,
+                                            p00, p01, p02, p11, p12, p22)
+    p00, p11, p22 = p00 + 1.0, p11 + 1.0, p22 + 1.0
+    e00, e01, e02, e11, e12, e22 = _sym_mul(y00, y01, y02, y11, y12, y22,
+                                            p00, p01, p02, p11, p12, p22)
+    return True, e00, e01, e02, e11, e12, e22
+
+
+@njit(cache=True, inline="always")
+def _exp_series(d00, d01, d02, d11, d12, d22):
+    """exp(D) for a small symmetric D: Taylor through D^6 / 6! by Horner."""
+    e00, e01, e02, e11, e12, e22 = 1.0, 0.0, 0.0, 1.0, 0.0, 1.0
+    for k in range(6, 0, -1):  # E <- I + D E / k
+        e00, e01, e02, e11, e12, e22 = _sym_mul(d00, d01, d02, d11, d12, d22,
+                                                e00, e01, e02, e11, e12, e22)
+        s = 1.0 / k
+        e00, e01, e02 = 1.0 + s * e00, s * e01, s * e02
+        e11, e12, e22 = 1.0 + s * e11, s * e12, 1.0 + s * e22
+    return e00, e01, e02, e11, e12, e22
+
+
+@njit(cache=True, inline="always")
+def elastoplastic_update_series(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_out, tau_out,
+                                p, lam, mu, alpha):
+    """`elastoplastic_update_scalar` without an eigen-solve, for small elastic strains:
+    the Hencky strain as the matrix eps = log(b) / 2 by a series, the return mapping on
+    eps itself (Drucker-Prager is isotropic, so projecting the matrix is projecting its
+    eigenvalues: eps <- eps - dgamma dev(eps) / |dev eps|, or 0 at the tip), F^E <-
+    exp(eps_new - eps) Fn (coaxial with b = exp(2 eps)) and tau = 2 mu eps + lam tr(eps) I.
+    b - I is formed as G + G^T + G G^T with G = Fn - I (no cancellation). Returns False,
+    writing nothing, for det Fn <= 0 or a strain beyond the series bound."""
+    det = (f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20)
+           + f02 * (f10 * f21 - f11 * f20))
+    if not det > 0.0:
+        return False
+    g00, g11, g22 = f00 - 1.0, f11 - 1.0, f22 - 1.0
+    x00 = 2.0 * g00 + g00 * g00 + f01 * f01 + f02 * f02
+    x11 = 2.0 * g11 + f10 * f10 + g11 * g11 + f12 * f12
+    x22 = 2.0 * g22 + f20 * f20 + f21 * f21 + g22 * g22
+    x01 = f01 + f10 + g00 * f10 + f01 * g11 + f02 * f12
+    x02 = f02 + f20 + g00 * f20 + f01 * f21 + f02 * g22
+    x12 = f12 + f21 + f10 * f20 + g11 * f21 + f12 * g22
+    trb = 3.0 + x00 + x11 + x22
+    if x01 * x01 + x02 * x02 + x12 * x12 <= STRESS_JACOBI_REL_TOL * trb * trb:
+        return False  # b is diagonal to the eigen path's tolerance: no rotation there
+    ok, e00, e01, e02, e11, e12, e22 = _hencky_series(x00, x01, x02, x11, x12, x22)
+    if not ok:
+        return False
+    tr = e00 + e11 + e22
+    m = tr * (1.0 / DIM)
+    d00, d11, d22 = e00 - m, e11 - m, e22 - m
+    dev = math.sqrt(d00 * d00 + d11 * d11 + d22 * d22
+                    + 2.0 * (e01 * e01 + e02 * e02 + e12 * e12))
+    plastic = True
+    if tr > 0.0:  # tension: to the cone tip, eps = 0
+        s00, s01, s02, s11, s12, s22 = -e00, -e01, -e02, -e11, -e12, -e22
+    else:
+        dgamma = dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+        if dgamma <= 0.0:
+            plastic = False
+            s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+        else:
+            f = -dgamma / dev
+            s00, s01, s02, s11, s12, s22 = f * d00, f * e01, f * e02, f * d11, f * e12, f * d22
+    if plastic:  # F^E = exp(S) Fn, S = eps_new - eps
+        a00, a01, a02, a11, a12, a22 = _exp_series(s00, s01, s02, s11, s12, s22)
+        F_out[p, 0, 0] = a00 * f00 + a01 * f10 + a02 * f20
+        F_out[p, 0, 1] = a00 * f01 + a01 * f11 + a02 * f21
+        F_out[p, 0, 2] = a00 * f02 + a01 * f12 + a02 * f22
+        F_out[p, 1, 0] = a01 * f00 + a11 * f10 + a12 * f20
+        F_out[p, 1, 1] = a01 * f01 + a11 * f11 + a12 * f21
+        F_out[p, 1, 2] = a01 * f02 + a11 * f12 + a12 * f22
+        F_out[p, 2, 0] = a02 * f00 + a12 * f10 + a22 * f20
+        F_out[p, 2, 1] = a02 * f01 + a12 * f11 + a22 * f21
+        F_out[p, 2, 2] = a02 * f02 + a12 * f12 + a22 * f22
+        e00, e01, e02 = e00 + s00, e01 + s01, e02 + s02
+        e11, e12, e22 = e11 + s11, e12 + s12, e22 + s22
+        tr = e00 + e11 + e22
+    else:
+        F_out[p, 0, 0], F_out[p, 0, 1], F_out[p, 0, 2] = f00, f01, f02
+        F_out[p, 1, 0], F_out[p, 1, 1], F_out[p, 1, 2] = f10, f11, f12
+        F_out[p, 2, 0], F_out[p, 2, 1], F_out[p, 2, 2] = f20, f21, f22
+    two_mu, lt = 2.0 * mu, lam * tr  # Kirchhoff stress, Pa
+    tau_out[p, 0, 0] = two_mu * e00 + lt
+    tau_out[p, 1, 1] = two_mu * e11 + lt
+    tau_out[p, 2, 2] = two_mu * e22 + lt
+    t01, t02, t12 = two_mu * e01, two_mu * e02, two_mu * e12
+    tau_out[p, 0, 1], tau_out[p, 1, 0] = t01, t01
+    tau_out[p, 0, 2], tau_out[p, 2, 0] = t02, t02
+    tau_out[p, 1, 2], tau_out[p, 2, 1] = t12, t12
+    return True

@@ -7,11 +7,13 @@ import pytest
 from numba import njit
 
 from sim.plasticity import (
+    SERIES_MAX_Y,
     dp_project,
     dp_project_numpy,
     dp_yield,
     elastoplastic_update,
     elastoplastic_update_scalar,
+    elastoplastic_update_series,
 )
 from sim.scene import DPCone, Material
 from sim.svd import svd3, sym_eig3_scalar
@@ -23,14 +25,14 @@ DP_TOL = 1e-12
 SAND = Material(1800.0, 1.0e6, 0.3, 30.0)
 
 
-@njit(cache=True)
+@njit
 def _svd_batch(Fs, Us, sigs, Vs):
     S = np.empty((3, 3))
     for p in range(Fs.shape[0]):
         svd3(Fs[p], Us[p], sigs[p], Vs[p], S)
 
 
-@njit(cache=True)
+@njit
 def _eig_batch(A, lam, Q, rel_tol):
     for p in range(A.shape[0]):
         a = A[p]
@@ -39,7 +41,7 @@ def _eig_batch(A, lam, Q, rel_tol):
             a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2], rel_tol)
 
 
-@njit(cache=True)
+@njit
 def _update_batch(Fn, F_arr, tau_arr, F_sc, tau_sc, ok, lam, mu, alpha):
     scratch = np.empty((4, 3, 3))
     vec = np.empty((2, 3))
@@ -52,13 +54,22 @@ def _update_batch(Fn, F_arr, tau_arr, F_sc, tau_sc, ok, lam, mu, alpha):
                                             p, lam, mu, alpha)
 
 
-@njit(cache=True)
+@njit
+def _series_batch(Fn, F_out, tau_out, ok, lam, mu, alpha):
+    for p in range(Fn.shape[0]):
+        f = Fn[p]
+        ok[p] = elastoplastic_update_series(f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1],
+                                            f[1, 2], f[2, 0], f[2, 1], f[2, 2], F_out,
+                                            tau_out, p, lam, mu, alpha)
+
+
+@njit
 def _dp_batch(sigs, eps, lam, mu, alpha, dgamma):
     for p in range(sigs.shape[0]):
         dgamma[p] = dp_project(sigs[p], eps[p], lam, mu, alpha)
 
 
-@njit(cache=True)
+@njit
 def _log(a):
     out = np.empty_like(a)
     for i in range(a.shape[0]):
@@ -144,6 +155,49 @@ def test_register_elastoplastic_update_matches_array_version():
     # both stop the Jacobi sweeps at STRESS_JACOBI_REL_TOL (stress ~1e-11 relative)
     assert np.abs(F_sc[ok] - F_arr[ok]).max() < 1e-10
     assert np.abs(tau_sc[ok] - tau_arr[ok]).max() / SAND.youngs_modulus_pa < 1e-10
+
+
+def _eigh_update(Fn, lam, mu, alpha):
+    """The same update in NumPy from eigh(b) (eigenvalues to ~1e-16): F^E and tau."""
+    sq, Q = np.linalg.eigh(Fn @ Fn.transpose(0, 2, 1))
+    e = 0.5 * np.log(sq)
+    eps = dp_project_numpy(np.exp(e), lam, mu, alpha)
+    F = Q @ (np.exp(eps - e)[:, :, None] * Q.transpose(0, 2, 1)) @ Fn
+    t = 2.0 * mu * eps + lam * eps.sum(axis=1, keepdims=True)
+    return F, Q @ (t[:, :, None] * Q.transpose(0, 2, 1))
+
+
+def test_series_elastoplastic_update_matches_eigen_reference():
+    """The eigen-free path (matrix log by the atanh series, return mapping on the
+    matrix, exp of the plastic increment) against eigh: 1e-13, far tighter than the
+    Jacobi path's 1e-10; it declines inverted F, diagonal b and strains beyond the bound."""
+    rng = np.random.default_rng(9)
+    n = 3000
+    scale = np.repeat([1e-5, 1e-4, 1e-3, 2e-3], n // 4)[:, None, None]
+    Fn = _random_rotations(rng, n) @ (np.eye(3) + scale * rng.normal(size=(n, 3, 3)))
+    Fn[:5] = np.eye(3)  # b diagonal: declined (the eigen path needs no rotation there)
+    Fn[5:10] = np.diag([0.999, 0.998, 0.999])
+    Fn[10] = np.diag([1.0, 1.0, -1.0]) @ _random_rotations(rng, 1)[0]  # inverted
+    Fn[11] = np.eye(3) + 0.05 * rng.normal(size=(3, 3))  # beyond the series bound
+    Fn[12] = np.diag([np.nan, 1.0, 1.0])
+    lam, mu, alpha = SAND.lame_lambda_pa, SAND.shear_modulus_pa, SAND.dp_alpha
+    F_out, tau_out = np.full_like(Fn, np.nan), np.full_like(Fn, np.nan)
+    ok = np.zeros(n, dtype=np.bool_)
+    _series_batch(Fn, F_out, tau_out, ok, lam, mu, alpha)
+    b = Fn[13:] @ Fn[13:].transpose(0, 2, 1)
+    y = (b - np.eye(3)) @ np.linalg.inv(b + np.eye(3))
+    assert np.sqrt((y * y).sum(axis=(1, 2))).max() < SERIES_MAX_Y  # all inside the bound
+    assert not ok[:13].any() and ok[13:].all()
+    assert np.isnan(F_out[:13]).all() and np.isnan(tau_out[:13]).all()  # nothing written
+    F_ref, tau_ref = _eigh_update(Fn[13:], lam, mu, alpha)
+    assert np.abs(F_out[13:] - F_ref).max() < 1e-13
+    assert np.abs(tau_out[13:] - tau_ref).max() / SAND.youngs_modulus_pa < 1e-13
+    tr_eps = 0.5 * np.log(np.linalg.det(b))
+    plastic = np.abs(F_out[13:] - Fn[13:]).max(axis=(1, 2)) > 0.0
+    tip = tr_eps > 0.0
+    assert 100 < (plastic & ~tip).sum() and 100 < tip.sum() and 100 < (~plastic).sum()
+    assert np.array_equal(F_out[13:][~plastic], Fn[13:][~plastic])  # elastic: kept exactly
+    assert np.abs(tau_out[13:][tip]).max() / SAND.youngs_modulus_pa < 1e-13  # tip: no stress
 
 
 def _strains(rng, n=5000):

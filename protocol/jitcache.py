@@ -5,10 +5,14 @@ that calls (or inlines) one from another file keeps running the old callee after
 file is edited (e.g. a change to ``sim/plasticity.py`` does not reach the cached
 ``sim.kernels.g2p``). Each numba package calls `drop_stale_numba_cache` from its
 ``__init__``: when the hash of the package's sources differs from the one recorded beside
-its cache, the package's cache files are deleted and numba compiles afresh. numba treats
-a cache file removed under it as a miss, so concurrent processes (MPI ranks) are safe.
-With ``NUMBA_CACHE_DIR`` set, or a read-only install, the cache lives elsewhere and is
-left alone (an installed package does not change in place).
+its cache, the package's cache files are deleted and numba compiles afresh (any edit of
+the package drops all of its kernels: about a minute of compiling at the next start).
+The cache is where numba puts it: ``__pycache__`` beside the sources, or numba's
+directory for the package under ``NUMBA_CACHE_DIR`` when that is set (the systemd unit
+sets it). numba treats a cache file removed under it as a miss, so concurrent processes
+(MPI ranks) are safe. Not covered: a process still running the old code that compiles a
+new signature after another process dropped the cache saves it under the new marker.
+A read-only cache directory (a system install) is left alone.
 """
 
 from __future__ import annotations
@@ -29,24 +33,33 @@ def sources_digest(package_dir: Path) -> str:
     return digest.hexdigest()
 
 
+def numba_cache_dir(package_dir: Path) -> Path:
+    """Where numba caches the package's functions: ``NUMBA_CACHE_DIR``'s subdirectory for
+    it (numba's own mapping) when set, else ``__pycache__`` beside the sources."""
+    from numba.core import config
+    if not config.CACHE_DIR:
+        return package_dir / "__pycache__"
+    from numba.core.caching import _CacheLocator
+    init = str(package_dir.resolve() / "__init__.py")
+    return Path(config.CACHE_DIR) / _CacheLocator.get_suitable_cache_subpath(init)
+
+
 def drop_stale_numba_cache(package_dir: str | os.PathLike) -> bool:
-    """Delete ``package_dir/__pycache__/*.nbi|*.nbc`` if the sources changed since they were
-    written; returns True when it deleted (or found nothing to keep)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return False
+    """Delete the package's numba cache files (``*.nbi``, ``*.nbc``) if its sources changed
+    since they were written; returns True when it dropped (or found nothing to keep)."""
     package_dir = Path(package_dir)
-    pycache = package_dir / "__pycache__"
-    marker = pycache / MARKER
     try:
+        cache = numba_cache_dir(package_dir)
+        marker = cache / MARKER
         key = sources_digest(package_dir)
         if marker.is_file() and marker.read_text() == key:
             return False
-        for path in list(pycache.glob("*.nbi")) + list(pycache.glob("*.nbc")):
+        for path in list(cache.glob("*.nbi")) + list(cache.glob("*.nbc")):
             path.unlink(missing_ok=True)
-        pycache.mkdir(exist_ok=True)
-        tmp = pycache / f"{MARKER}.{os.getpid()}.tmp"
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = cache / f"{MARKER}.{os.getpid()}.tmp"
         tmp.write_text(key)
         os.replace(tmp, marker)
-    except OSError:  # read-only install: numba caches in its user-wide directory
+    except OSError:  # read-only: numba caches elsewhere (or not at all)
         return False
     return True

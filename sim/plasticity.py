@@ -261,7 +261,10 @@ def _hencky_series(x00, x01, x02, x11, x12, x22):
     c11 = m00 * m22 - x02 * x02
     c12 = x01 * x02 - m00 * x12
     c22 = m00 * m11 - x01 * x01
-    inv_det = 1.0 / (m00 * c00 + x01 * c01 + x02 * c02)
+    det_m = m00 * c00 + x01 * c01 + x02 * c02
+    if not 0.0 < det_m < math.inf:  # NaN, or an overflow from a huge F (Y would read 0)
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inv_det = 1.0 / det_m
     y00, y01, y02, y11, y12, y22 = _sym_mul(x00, x01, x02, x11, x12, x22, c00 * inv_det,
                                             c01 * inv_det, c02 * inv_det, c11 * inv_det,
                                             c12 * inv_det, c22 * inv_det)

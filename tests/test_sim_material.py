@@ -180,24 +180,25 @@ def test_series_elastoplastic_update_matches_eigen_reference():
     Fn[10] = np.diag([1.0, 1.0, -1.0]) @ _random_rotations(rng, 1)[0]  # inverted
     Fn[11] = np.eye(3) + 0.05 * rng.normal(size=(3, 3))  # beyond the series bound
     Fn[12] = np.diag([np.nan, 1.0, 1.0])
+    Fn[13] = 3e51 * np.array([[1.0, 0.01, 0.0], [0.0, 1.0, 0.01], [0.0, 0.0, 1.0]])  # det(b + I) overflows
     lam, mu, alpha = SAND.lame_lambda_pa, SAND.shear_modulus_pa, SAND.dp_alpha
     F_out, tau_out = np.full_like(Fn, np.nan), np.full_like(Fn, np.nan)
     ok = np.zeros(n, dtype=np.bool_)
     _series_batch(Fn, F_out, tau_out, ok, lam, mu, alpha)
-    b = Fn[13:] @ Fn[13:].transpose(0, 2, 1)
+    b = Fn[14:] @ Fn[14:].transpose(0, 2, 1)
     y = (b - np.eye(3)) @ np.linalg.inv(b + np.eye(3))
     assert np.sqrt((y * y).sum(axis=(1, 2))).max() < SERIES_MAX_Y  # all inside the bound
-    assert not ok[:13].any() and ok[13:].all()
-    assert np.isnan(F_out[:13]).all() and np.isnan(tau_out[:13]).all()  # nothing written
-    F_ref, tau_ref = _eigh_update(Fn[13:], lam, mu, alpha)
-    assert np.abs(F_out[13:] - F_ref).max() < 1e-13
-    assert np.abs(tau_out[13:] - tau_ref).max() / SAND.youngs_modulus_pa < 1e-13
+    assert not ok[:14].any() and ok[14:].all()
+    assert np.isnan(F_out[:14]).all() and np.isnan(tau_out[:14]).all()  # nothing written
+    F_ref, tau_ref = _eigh_update(Fn[14:], lam, mu, alpha)
+    assert np.abs(F_out[14:] - F_ref).max() < 1e-13
+    assert np.abs(tau_out[14:] - tau_ref).max() / SAND.youngs_modulus_pa < 1e-13
     tr_eps = 0.5 * np.log(np.linalg.det(b))
-    plastic = np.abs(F_out[13:] - Fn[13:]).max(axis=(1, 2)) > 0.0
+    plastic = np.abs(F_out[14:] - Fn[14:]).max(axis=(1, 2)) > 0.0
     tip = tr_eps > 0.0
     assert 100 < (plastic & ~tip).sum() and 100 < tip.sum() and 100 < (~plastic).sum()
-    assert np.array_equal(F_out[13:][~plastic], Fn[13:][~plastic])  # elastic: kept exactly
-    assert np.abs(tau_out[13:][tip]).max() / SAND.youngs_modulus_pa < 1e-13  # tip: no stress
+    assert np.array_equal(F_out[14:][~plastic], Fn[14:][~plastic])  # elastic: kept exactly
+    assert np.abs(tau_out[14:][tip]).max() / SAND.youngs_modulus_pa < 1e-13  # tip: no stress
 
 
 def _strains(rng, n=5000):

@@ -169,6 +169,21 @@ def elastoplastic_update(Fn, F_out, tau_out, lam, mu, alpha, B, Q, U, V, sig, ep
 
 
 @njit(cache=True, inline="always")
+def _write_sym_times(F_out, p, m00, m01, m02, m11, m12, m22, f00, f01, f02, f10, f11, f12,
+                     f20, f21, f22):
+    """F_out[p] = M Fn for a symmetric M (upper triangle given) and Fn (row major)."""
+    F_out[p, 0, 0] = m00 * f00 + m01 * f10 + m02 * f20
+    F_out[p, 0, 1] = m00 * f01 + m01 * f11 + m02 * f21
+    F_out[p, 0, 2] = m00 * f02 + m01 * f12 + m02 * f22
+    F_out[p, 1, 0] = m01 * f00 + m11 * f10 + m12 * f20
+    F_out[p, 1, 1] = m01 * f01 + m11 * f11 + m12 * f21
+    F_out[p, 1, 2] = m01 * f02 + m11 * f12 + m12 * f22
+    F_out[p, 2, 0] = m02 * f00 + m12 * f10 + m22 * f20
+    F_out[p, 2, 1] = m02 * f01 + m12 * f11 + m22 * f21
+    F_out[p, 2, 2] = m02 * f02 + m12 * f12 + m22 * f22
+
+
+@njit(cache=True, inline="always")
 def elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_out, tau_out,
                                 p, lam, mu, alpha):
     """`elastoplastic_update` in registers: trial F^E given as nine scalars (row major),
@@ -198,15 +213,8 @@ def elastoplastic_update_scalar(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_o
         m11 = q10 * s0 * q10 + q11 * s1 * q11 + q12 * s2 * q12
         m12 = q10 * s0 * q20 + q11 * s1 * q21 + q12 * s2 * q22
         m22 = q20 * s0 * q20 + q21 * s1 * q21 + q22 * s2 * q22
-        F_out[p, 0, 0] = m00 * f00 + m01 * f10 + m02 * f20
-        F_out[p, 0, 1] = m00 * f01 + m01 * f11 + m02 * f21
-        F_out[p, 0, 2] = m00 * f02 + m01 * f12 + m02 * f22
-        F_out[p, 1, 0] = m01 * f00 + m11 * f10 + m12 * f20
-        F_out[p, 1, 1] = m01 * f01 + m11 * f11 + m12 * f21
-        F_out[p, 1, 2] = m01 * f02 + m11 * f12 + m12 * f22
-        F_out[p, 2, 0] = m02 * f00 + m12 * f10 + m22 * f20
-        F_out[p, 2, 1] = m02 * f01 + m12 * f11 + m22 * f21
-        F_out[p, 2, 2] = m02 * f02 + m12 * f12 + m22 * f22
+        _write_sym_times(F_out, p, m00, m01, m02, m11, m12, m22,
+                         f00, f01, f02, f10, f11, f12, f20, f21, f22)
     else:
         F_out[p, 0, 0], F_out[p, 0, 1], F_out[p, 0, 2] = f00, f01, f02
         F_out[p, 1, 0], F_out[p, 1, 1], F_out[p, 1, 2] = f10, f11, f12
@@ -345,15 +353,8 @@ def elastoplastic_update_series(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_o
             s00, s01, s02, s11, s12, s22 = f * d00, f * e01, f * e02, f * d11, f * e12, f * d22
     if plastic:  # F^E = exp(S) Fn, S = eps_new - eps
         a00, a01, a02, a11, a12, a22 = _exp_series(s00, s01, s02, s11, s12, s22)
-        F_out[p, 0, 0] = a00 * f00 + a01 * f10 + a02 * f20
-        F_out[p, 0, 1] = a00 * f01 + a01 * f11 + a02 * f21
-        F_out[p, 0, 2] = a00 * f02 + a01 * f12 + a02 * f22
-        F_out[p, 1, 0] = a01 * f00 + a11 * f10 + a12 * f20
-        F_out[p, 1, 1] = a01 * f01 + a11 * f11 + a12 * f21
-        F_out[p, 1, 2] = a01 * f02 + a11 * f12 + a12 * f22
-        F_out[p, 2, 0] = a02 * f00 + a12 * f10 + a22 * f20
-        F_out[p, 2, 1] = a02 * f01 + a12 * f11 + a22 * f21
-        F_out[p, 2, 2] = a02 * f02 + a12 * f12 + a22 * f22
+        _write_sym_times(F_out, p, a00, a01, a02, a11, a12, a22,
+                         f00, f01, f02, f10, f11, f12, f20, f21, f22)
         e00, e01, e02 = e00 + s00, e01 + s01, e02 + s02
         e11, e12, e22 = e11 + s11, e12 + s12, e22 + s22
         tr = e00 + e11 + e22

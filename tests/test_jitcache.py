@@ -5,6 +5,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 from protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
 
 PACKAGE_INIT = textwrap.dedent("""
@@ -33,16 +35,19 @@ def _run_caller(root, cache_dir=None) -> int:
     return int(out.stdout.strip())
 
 
-def test_edit_of_a_callee_file_reaches_the_cached_caller(tmp_path):
+@pytest.mark.parametrize("user_cache", [False, True], ids=["pycache", "NUMBA_CACHE_DIR"])
+def test_edit_of_a_callee_file_reaches_the_cached_caller(tmp_path, user_cache):
     pkg = tmp_path / "pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text(PACKAGE_INIT)
     (pkg / "caller.py").write_text(CALLER)
     (pkg / "callee.py").write_text(CALLEE.format(1))
-    assert _run_caller(tmp_path) == 1
-    assert list((pkg / "__pycache__").glob("caller.*.nbi"))  # the caller was cached
+    cache_dir = tmp_path / "numba-cache" if user_cache else None
+    assert _run_caller(tmp_path, cache_dir) == 1
+    where = cache_dir if user_cache else pkg / "__pycache__"
+    assert list(where.rglob("caller.*.nbi"))  # the caller was cached there
     (pkg / "callee.py").write_text(CALLEE.format(2))  # caller.py untouched
-    assert _run_caller(tmp_path) == 2  # without the guard numba returns the stale 1
+    assert _run_caller(tmp_path, cache_dir) == 2  # without the guard numba returns the stale 1
 
 
 def test_drop_keeps_a_matching_cache_and_drops_an_edited_one(tmp_path, monkeypatch):
@@ -76,16 +81,3 @@ def test_drop_works_in_numba_cache_dir(tmp_path, monkeypatch):
     assert drop_stale_numba_cache(pkg)
     assert not list(cache.glob("*.nbc")) and (cache / MARKER).is_file()
     assert not (pkg / "__pycache__").exists()
-
-
-def test_edit_reaches_the_cached_caller_under_numba_cache_dir(tmp_path):
-    pkg = tmp_path / "pkg"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text(PACKAGE_INIT)
-    (pkg / "caller.py").write_text(CALLER)
-    (pkg / "callee.py").write_text(CALLEE.format(1))
-    cache_dir = tmp_path / "numba-cache"
-    assert _run_caller(tmp_path, cache_dir) == 1
-    assert list(cache_dir.rglob("caller.*.nbi"))  # cached there, not in __pycache__
-    (pkg / "callee.py").write_text(CALLEE.format(2))
-    assert _run_caller(tmp_path, cache_dir) == 2

@@ -31,12 +31,19 @@ STRESS_JACOBI_REL_TOL = 1e-22
 
 
 @njit(cache=True, inline="always")
+def dp_excess(dev, tr, lam, mu, alpha):
+    """dgamma = |dev eps| + (d lam + 2 mu) / (2 mu) tr(eps) alpha: how far a Hencky strain
+    with that deviator norm and trace lies outside the cone (<= 0 inside)."""
+    return dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+
+
+@njit(cache=True, inline="always")
 def dp_yield(e0, e1, e2, lam, mu, alpha):
     """Yield function dgamma (<= 0 inside the cone) for principal Hencky strains."""
     tr = e0 + e1 + e2
     m = tr / DIM
     dev = math.sqrt((e0 - m) ** 2 + (e1 - m) ** 2 + (e2 - m) ** 2)
-    return dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+    return dp_excess(dev, tr, lam, mu, alpha)
 
 
 @njit(cache=True, inline="always")
@@ -49,7 +56,7 @@ def dp_return_scalar(e0, e1, e2, lam, mu, alpha):
     dev = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     if tr > 0.0:
         return 0.0, 0.0, 0.0, math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-    dgamma = dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+    dgamma = dp_excess(dev, tr, lam, mu, alpha)
     if dgamma <= 0.0:  # inside the cone (includes dev = 0 with tr <= 0)
         return e0, e1, e2, 0.0
     f = dgamma / dev  # dev > 0 here since tr <= 0
@@ -344,7 +351,7 @@ def elastoplastic_update_series(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_o
     if tr > 0.0:  # tension: to the cone tip, eps = 0
         s00, s01, s02, s11, s12, s22 = -e00, -e01, -e02, -e11, -e12, -e22
     else:
-        dgamma = dev + (DIM * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+        dgamma = dp_excess(dev, tr, lam, mu, alpha)
         if dgamma <= 0.0:
             plastic = False
             s00 = s01 = s02 = s11 = s12 = s22 = 0.0

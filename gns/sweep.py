@@ -102,8 +102,13 @@ def plan(cfg: SweepConfig) -> list[ScenePlan]:
     rng = np.random.default_rng(cfg.seed)
     held_a, held_phi = sp["held_out_aspect_ratio"], sp["held_out_friction_angle_deg"]
     plans: list[ScenePlan] = []
-    for split in SPLITS:
-        want, draws = int(sp[split]), 0
+    # extra_train / extra_valid are drawn after the test scenes from the same stream, so that
+    # enlarging a sweep keeps every scene it had (and its runs) and adds new ones
+    rounds = [(name, int(sp[name])) for name in SPLITS] + [
+        ("train", int(sp["train"]) + int(sp.get("extra_train", 0))),
+        ("valid", int(sp["valid"]) + int(sp.get("extra_valid", 0)))]
+    for split, want in rounds:
+        draws = 0
         while sum(p.split == split for p in plans) < want:
             draws += 1
             if draws > MAX_DRAWS:

@@ -43,6 +43,22 @@ def test_sweep_plan_holds_out_bands_and_is_deterministic():
                for p in a if p.split == "test")
 
 
+def test_sweep_extra_scenes_keep_the_planned_ones():
+    """extra_train / extra_valid enlarge a sweep without changing a scene it had."""
+    cfg = load_config(SWEEP)
+    base = {p.name: p for p in plan(cfg)}
+    cfg.splits = {**cfg.splits, "extra_train": 5, "extra_valid": 2}
+    grown = plan(cfg)
+    assert {p.name: p for p in grown if p.name in base} == base
+    added = [p for p in grown if p.name not in base]
+    assert sorted(p.split for p in added) == ["train"] * 5 + ["valid"] * 2
+    n_train = cfg.splits["train"]
+    assert {p.name for p in added if p.split == "train"} == {
+        f"train_{i:03d}" for i in range(n_train, n_train + 5)}
+    assert len({(p.length_m, p.width_m, p.height_m, p.friction_angle_deg) for p in grown}) \
+        == len(grown)
+
+
 def _fake_run(path: Path, rng, n=60, frames=30, phi=30.0, size=(0.4, 0.1, 0.2)):
     """A trajectory in `minority sim`'s HDF5 layout: particles falling and drifting."""
     x0 = rng.uniform(0.05, 0.09, (n, 3))

@@ -3,7 +3,9 @@ exponential learning-rate decay, validation rollouts, checkpoints with resume.
 
 A checkpoint is a dict of tensors and plain values (loads with `weights_only=True`):
 format, model_config, stats (normalization, radius, frame interval, bounds), state_dict,
-optimizer (absent in a shipped checkpoint), step, train_config, history.
+optimizer (absent in a shipped checkpoint), step, train_config, history. With an exponential
+moving average of the weights (`ema_decay` > 0), state_dict holds the averaged weights (what
+validation, rollout and evaluation use) and train_state_dict the optimizer's (for resume).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ class TrainConfig:
     val_frames: int = 100  # rollout length of a validation rollout
     ckpt_every: int = 500
     keep_validated: bool = False  # also keep a copy OUT_step<N>.pt at every validation
+    ema_decay: float = 0.0  # > 0: validate and save an exponential moving average of weights
     seed: int = 0
 
 
@@ -66,6 +69,7 @@ def ship(src: str | Path, dst: str | Path) -> Path:
     if ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{src}: not a {CHECKPOINT_FORMAT} checkpoint")
     ckpt.pop("optimizer", None)
+    ckpt.pop("train_state_dict", None)
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
     torch.save(ckpt, dst)
@@ -146,6 +150,16 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)
+    ema = None
+    if cfg.ema_decay > 0:  # starts from the loaded weights (the average, when resuming one)
+        if not cfg.ema_decay < 1:
+            raise ValueError(f"ema_decay {cfg.ema_decay} must be below 1")
+        ema = torch.optim.swa_utils.AveragedModel(
+            model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(cfg.ema_decay))
+    if resume and "train_state_dict" in ckpt:
+        model.load_state_dict(ckpt["train_state_dict"])
+        if ema is not None:
+            ema.n_averaged.fill_(1)  # keep the resumed average, do not restart it
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if "optimizer" in ckpt:
         opt.load_state_dict(ckpt["optimizer"])
@@ -165,11 +179,15 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
           f"{torch.get_num_threads()} threads", file=log, flush=True)
 
     def save(path: Path) -> None:
+        extra = {"train_state_dict": model.state_dict()} if ema is not None else {}
         torch.save({"format": CHECKPOINT_FORMAT, "model_config": model_config.to_dict(),
-                    "stats": stats, "state_dict": model.state_dict(),
+                    "stats": stats, "state_dict": evaluated().state_dict(),
                     "optimizer": opt.state_dict(), "step": step, "train_config": asdict(cfg),
-                    "history": history}, path.with_suffix(".tmp"))
+                    "history": history, **extra}, path.with_suffix(".tmp"))
         path.with_suffix(".tmp").replace(path)
+
+    def evaluated() -> GNS:
+        return model if ema is None else ema.module
 
     t0, t_last, loss_acc, n_acc = time.perf_counter(), time.perf_counter(), 0.0, 0
     model.train()
@@ -186,6 +204,8 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if ema is not None:
+            ema.update_parameters(model)
         step += 1
         loss_acc += loss.detach().item()
         n_acc += 1
@@ -201,7 +221,8 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
             save(out)
         if val_trajs and (step % cfg.val_every == 0 or step == cfg.steps):
             model.eval()
-            scores = [rollout_error(model, t, cfg.val_frames, device) for t in val_trajs]
+            scores = [rollout_error(evaluated().eval(), t, cfg.val_frames, device)
+                      for t in val_trajs]
             model.train()
             err = float(np.mean([sc["error_m"] for sc in scores]))
             reached = min(sc["frames"] for sc in scores)

@@ -43,7 +43,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      lr_decay_steps=args.lr_decay_steps, noise_std=args.noise_std,
                      val_every=args.val_every, val_frames=args.val_frames,
                      ckpt_every=args.ckpt_every, keep_validated=args.keep_validated,
-                     seed=args.seed)
+                     ema_decay=args.ema_decay, seed=args.seed)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     device=args.device)
@@ -219,6 +219,10 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--keep-validated", action="store_true",
                    help="also keep OUT_step<N>.pt at every validation, to choose a checkpoint "
                         "afterwards by the logged runout and displacement-range errors")
+    q.add_argument("--ema-decay", type=float, default=0.0, metavar="D",
+                   help="validate and save an exponential moving average of the weights, "
+                        "updated every step with this decay (e.g. 0.999: about the last "
+                        "1,000 steps); 0 (default) uses the weights as trained")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", help="cpu or cuda (default: cuda when available)")

@@ -15,7 +15,7 @@ from gns.export import write_vtk_series
 from gns.model import GNS, ModelConfig
 from gns.rollout import RolloutError, initial_state, rollout
 from gns.sweep import ScenePlan, load_config, plan
-from gns.train import TrainConfig, combined_stats, load_checkpoint, train
+from gns.train import TrainConfig, combined_stats, load_checkpoint, ship, train
 
 SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
 
@@ -189,6 +189,32 @@ def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
     assert pred.shape == (10, traj.positions.shape[1], 3) and np.isfinite(pred).all()
     np.testing.assert_array_equal(pred[:6], traj.positions[:6])
     assert timing["model_s"] > 0
+
+
+def test_train_ema_saves_the_average_and_resumes_it(dataset, tmp_path):
+    """state_dict is the moving average, train_state_dict the optimizer's weights; a resumed
+    run continues the average (one step: ema = d * ema + (1 - d) * weights)."""
+    path, _, _ = dataset
+    out, d = tmp_path / "e.pt", 0.75
+    tc = TrainConfig(steps=1, batch=1, val_every=10, ckpt_every=1, ema_decay=d)
+    train(path, out, ModelConfig(latent=8, message_passing=1), tc, device="cpu")
+    first = torch.load(out, weights_only=True)
+    for k, v in first["state_dict"].items():  # the first update copies the weights
+        torch.testing.assert_close(v, first["train_state_dict"][k])
+    train(path, out, None, replace(tc, steps=2), resume=out, device="cpu")
+    second = torch.load(out, weights_only=True)
+    moved = 0
+    for k, v in second["state_dict"].items():
+        w = second["train_state_dict"][k]
+        if v.is_floating_point() and not torch.equal(w, first["train_state_dict"][k]):
+            moved += 1
+            torch.testing.assert_close(v, d * first["state_dict"][k] + (1 - d) * w)
+    assert moved > 0
+    model, _ = load_checkpoint(out)
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(v, second["state_dict"][k])
+    shipped = torch.load(ship(out, tmp_path / "s.pt"), weights_only=True)
+    assert "train_state_dict" not in shipped and "optimizer" not in shipped
 
 
 def test_rollout_divergence_names_the_frame():

@@ -15,6 +15,9 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
+        for key in ("extra_train", "extra_valid"):
+            if getattr(args, key) is not None:
+                cfg.splits = {**cfg.splits, key: getattr(args, key)}
         runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
         meta = build(runs, args.out, stride=cfg.stride,
                      connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config),
@@ -185,6 +188,10 @@ def add_oracle_parser(sub) -> None:
                    help="where the MPM runs go (default: data/sweep)")
     q.add_argument("--out", type=Path, default=Path("data/dataset"), metavar="DIR",
                    help="dataset directory (default: data/dataset)")
+    q.add_argument("--extra-train", type=int, metavar="N", help="N more train scenes than the "
+                   "config's split, drawn after its test scenes: every scene of the config "
+                   "and its run stay (default: the config's extra_train, else 0)")
+    q.add_argument("--extra-valid", type=int, metavar="N", help="the same for validation scenes")
     q.add_argument("--jobs", type=int, default=1, help="sims run at once (default 1)")
     q.add_argument("--threads", type=int, default=1, help="numba threads per sim (default 1)")
     q.set_defaults(func=_cmd_dataset)

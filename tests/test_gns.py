@@ -59,6 +59,25 @@ def test_sweep_extra_scenes_keep_the_planned_ones():
         == len(grown)
 
 
+def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, capsys):
+    import gns.sweep
+    from minority.cli import main
+
+    seen = {}
+
+    def fake_sweep(cfg, out, **kw):
+        seen["plans"] = plan(cfg)
+        raise gns.sweep.SweepError("stop before running")
+
+    monkeypatch.setattr(gns.sweep, "run_sweep", fake_sweep)
+    rc = main(["oracle", "dataset", "--config", str(SWEEP), "--runs", str(tmp_path / "r"),
+               "--out", str(tmp_path / "d"), "--extra-train", "3", "--extra-valid", "1"])
+    assert rc == 1 and "stop before running" in capsys.readouterr().err
+    cfg = load_config(SWEEP)
+    assert len(seen["plans"]) == len(plan(cfg)) + 4
+    assert sum(p.split == "valid" for p in seen["plans"]) == cfg.splits["valid"] + 1
+
+
 def _fake_run(path: Path, rng, n=60, frames=30, phi=30.0, size=(0.4, 0.1, 0.2)):
     """A trajectory in `minority sim`'s HDF5 layout: particles falling and drifting."""
     x0 = rng.uniform(0.05, 0.09, (n, 3))

@@ -200,6 +200,8 @@ def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
     vals = [rollout_error(load_checkpoint(out)[0], t, 10_000) for t in load_split(path, "valid")]
     for key in ("runout", "displacement_range"):
         assert full[0][f"val_{key}_error_max"] == pytest.approx(max(v[key] for v in vals))
+    assert full[0]["val_runout_signed"] == pytest.approx([v["runout_signed"] for v in vals])
+    assert [abs(v["runout_signed"]) for v in vals] == pytest.approx([v["runout"] for v in vals])
     model2, ckpt2 = load_checkpoint(out)
     assert ckpt2["step"] == 9
     traj = load_split(path, "valid")[0]

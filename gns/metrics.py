@@ -36,10 +36,15 @@ def deposit(positions: np.ndarray) -> Deposit:
                    float(disp.min()), float(disp.max()))
 
 
+def signed_relative_error(a: float, b: float) -> float:
+    """(a - b) / b, a fraction (> 0: a exceeds b); inf when b is 0."""
+    return (a - b) / b if b else float("inf")
+
+
 def relative_errors(pred: Deposit, ref: Deposit) -> dict:
     """Relative errors (fractions) of runout, height and displacement range vs ref."""
     def rel(a: float, b: float) -> float:
-        return abs(a - b) / abs(b) if b else float("inf")
+        return abs(signed_relative_error(a, b))
     return {"runout": rel(pred.runout_m, ref.runout_m), "height": rel(pred.height_m, ref.height_m),
             "displacement_range": rel(pred.displacement_max_m - pred.displacement_min_m,
                                       ref.displacement_max_m - ref.displacement_min_m)}

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from gns.graph import radius_graph
-from gns.metrics import deposit, relative_errors
+from gns.metrics import deposit, relative_errors, signed_relative_error
 
 ESCAPE_RADII = 1.0  # connectivity radii outside the domain that count as leaving it
 
@@ -163,7 +163,6 @@ def rollout_error(model, traj, frames: int, device: str = "cpu") -> dict:
     if len(pred) == traj.positions.shape[0]:
         got, ref = deposit(pred), deposit(traj.positions)
         rel = relative_errors(got, ref)
-        signed = ((got.runout_m - ref.runout_m) / ref.runout_m if ref.runout_m
-                  else float("inf"))  # as relative_errors
+        signed = signed_relative_error(got.runout_m, ref.runout_m)
     return {"error_m": err, "frames": done, "runout": rel.get("runout"),
             "displacement_range": rel.get("displacement_range"), "runout_signed": signed}

@@ -178,6 +178,9 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
           f"{asdict(model_config)} ({n_params} parameters), {device}, "
           f"{torch.get_num_threads()} threads", file=log, flush=True)
 
+    def evaluated() -> GNS:  # the weights validated and saved as state_dict
+        return model if ema is None else ema.module
+
     def save(path: Path) -> None:
         extra = {"train_state_dict": model.state_dict()} if ema is not None else {}
         torch.save({"format": CHECKPOINT_FORMAT, "model_config": model_config.to_dict(),
@@ -185,9 +188,6 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
                     "optimizer": opt.state_dict(), "step": step, "train_config": asdict(cfg),
                     "history": history, **extra}, path.with_suffix(".tmp"))
         path.with_suffix(".tmp").replace(path)
-
-    def evaluated() -> GNS:
-        return model if ema is None else ema.module
 
     t0, t_last, loss_acc, n_acc = time.perf_counter(), time.perf_counter(), 0.0, 0
     model.train()

@@ -1,5 +1,6 @@
-"""Training: random-walk noise on the input velocities, normalized acceleration loss,
-exponential learning-rate decay, validation rollouts, checkpoints with resume.
+"""Training: random-walk noise on the input velocities, optional pushforward windows
+(gns.pushforward), normalized acceleration loss, exponential learning-rate decay, validation
+rollouts, checkpoints with resume.
 
 A checkpoint is a dict of tensors and plain values (loads with `weights_only=True`):
 format, model_config, stats (normalization, radius, frame interval, bounds), state_dict,
@@ -22,6 +23,7 @@ import torch
 from gns.dataset import load_metadata, load_split
 from gns.graph import radius_graph
 from gns.model import GNS, ModelConfig
+from gns.pushforward import draw_steps, unroll
 
 CHECKPOINT_FORMAT = "minority-gns-checkpoint/1"
 STAT_KEYS = ("vel_mean", "vel_std", "acc_mean", "acc_std", "friction_mean_deg",
@@ -42,6 +44,8 @@ class TrainConfig:
     ckpt_every: int = 500
     keep_validated: bool = False  # also keep a copy OUT_step<N>.pt at every validation
     ema_decay: float = 0.0  # > 0: validate and save an exponential moving average of weights
+    pushforward_steps: int = 0  # > 0: windows unrolled 1..this many frames (gns.pushforward)
+    pushforward_prob: float = 0.5  # the fraction of windows unrolled
     seed: int = 0
 
 
@@ -84,19 +88,27 @@ class Sampler:
         self.weights = np.array([t.positions.shape[0] - c - 1 for t in trajs], np.float64)
         self.weights /= self.weights.sum()
 
-    def window(self, radius: float):
+    def window(self, radius: float, unroll: int = 0, advance=None):
+        """unroll > 0: a pushforward window; the noisy inputs end `unroll` frames earlier
+        and advance(inputs [n, C+1, 3], friction_deg, bounds_m, unroll) (gns.pushforward
+        .unroll with the model) predicts the frames up to the last input frame; the target is
+        then the true next frame."""
         t = self.trajs[self.rng.choice(len(self.trajs), p=self.weights)]
-        k = int(self.rng.integers(self.c, t.positions.shape[0] - 1))  # last input frame
-        pos = t.positions[k - self.c:k + 2].astype(np.float64)  # [C+2, n, 3]
+        u = unroll
+        k = int(self.rng.integers(self.c + u, t.positions.shape[0] - 1))  # last input frame
+        pos = t.positions[k - self.c - u:k + 2].astype(np.float64)  # [C+u+2, n, 3]
         n = pos.shape[1]
         vel_noise = self.rng.normal(0.0, self.noise / math.sqrt(self.c), (self.c, n, 3))
         pos_noise = np.concatenate([np.zeros((1, n, 3)), np.cumsum(np.cumsum(
             vel_noise, axis=0), axis=0)])  # random walk: none on the oldest frame
-        inputs = pos[:-1] + pos_noise
-        target = pos[-1] + pos_noise[-1]  # keep the true velocity of the last step
-        senders, receivers = radius_graph(inputs[-1], radius)
-        return (np.transpose(inputs, (1, 0, 2)), target, np.full(n, t.friction_angle_deg),
-                t.bounds_m, senders, receivers)
+        inputs = np.transpose(pos[:self.c + 1] + pos_noise, (1, 0, 2))  # [n, C+1, 3]
+        if u == 0:
+            target = pos[-1] + pos_noise[-1]  # keep the true velocity of the last step
+        else:
+            inputs = advance(inputs, t.friction_angle_deg, t.bounds_m, u)
+            target = pos[-1]
+        senders, receivers = radius_graph(inputs[:, -1], radius)
+        return inputs, target, np.full(n, t.friction_angle_deg), t.bounds_m, senders, receivers
 
 
 def _batch(windows, device):
@@ -150,6 +162,9 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)
+    if cfg.pushforward_steps < 0 or not 0 <= cfg.pushforward_prob <= 1:
+        raise ValueError(f"pushforward: steps {cfg.pushforward_steps} must be >= 0 and the "
+                         f"probability {cfg.pushforward_prob} within [0, 1]")
     ema = None
     if cfg.ema_decay > 0:  # starts from the loaded weights (the average, when resuming one)
         if not cfg.ema_decay < 1:
@@ -170,6 +185,10 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     out.parent.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed + step)
     sampler = Sampler(train_trajs, model_config.input_velocities, cfg.noise_std, rng)
+
+    def advance(inputs, friction_deg, bounds_m, steps):  # the weights being trained
+        return unroll(model, inputs, friction_deg, bounds_m, steps, device)
+
     acc_mean = torch.as_tensor(stats["acc_mean"], device=device)
     acc_std = torch.as_tensor(stats["acc_std"], device=device)
     best = min((h["val_error_m"] for h in history if h.get("val_complete")), default=math.inf)
@@ -196,7 +215,9 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         for g in opt.param_groups:
             g["lr"] = lr
         pos, tgt, fr, bounds, s, r = _batch(
-            [sampler.window(model.radius) for _ in range(cfg.batch)], device)
+            [sampler.window(model.radius, draw_steps(rng, cfg.pushforward_steps,
+                                                     cfg.pushforward_prob), advance)
+             for _ in range(cfg.batch)], device)
         last, prev = pos[:, -1], pos[:, -2]
         acc_target = ((tgt - 2 * last + prev) - acc_mean) / acc_std
         pred = model(pos, fr, bounds, s, r)

@@ -46,7 +46,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      lr_decay_steps=args.lr_decay_steps, noise_std=args.noise_std,
                      val_every=args.val_every, val_frames=args.val_frames,
                      ckpt_every=args.ckpt_every, keep_validated=args.keep_validated,
-                     ema_decay=args.ema_decay, seed=args.seed)
+                     ema_decay=args.ema_decay, pushforward_steps=args.pushforward,
+                     pushforward_prob=args.pushforward_prob, seed=args.seed)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     device=args.device)
@@ -230,6 +231,12 @@ def add_oracle_parser(sub) -> None:
                    help="validate and save an exponential moving average of the weights, "
                         "updated every step with this decay (e.g. 0.999: about the last "
                         "1,000 steps); 0 (default) uses the weights as trained")
+    q.add_argument("--pushforward", type=int, default=0, metavar="K",
+                   help="pushforward training: a window first rolls 1 to K frames forward "
+                        "with the model (no gradient) and then learns the true next frame "
+                        "from its own predictions; 0 (default) off")
+    q.add_argument("--pushforward-prob", type=float, default=0.5, metavar="P",
+                   help="fraction of windows unrolled when --pushforward is on (default 0.5)")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", help="cpu or cuda (default: cuda when available)")

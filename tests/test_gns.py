@@ -238,6 +238,72 @@ def test_train_ema_saves_the_average_and_resumes_it(dataset, tmp_path):
     assert "train_state_dict" not in shipped and "optimizer" not in shipped
 
 
+def test_pushforward_unroll_is_the_rollout_and_draws_steps():
+    from gns.pushforward import draw_steps, unroll
+    torch.manual_seed(0)
+    model = GNS(ModelConfig(latent=8, message_passing=1), _stats()).eval()
+    pos = _inputs()[0].numpy().astype(np.float64)  # [n, C+1, 3]
+    bounds = np.array([[0.0, 1], [0, 1], [0, 0.28]])  # some particles start above the top
+    pred, _ = rollout(model, pos.transpose(1, 0, 2), 31.0, bounds, 3)
+    got = unroll(model, pos, 31.0, bounds, 3)
+    np.testing.assert_allclose(got.transpose(1, 0, 2), pred[-6:], atol=1e-6)
+    assert got[:, -1, 2].max() <= np.float32(0.28)  # clamped to the domain as the rollout clamps
+    rng = np.random.default_rng(0)
+    assert {draw_steps(rng, 3, 0.0) for _ in range(50)} == {0}
+    assert {draw_steps(rng, 0, 1.0) for _ in range(50)} == {0}
+    assert {draw_steps(rng, 3, 1.0) for _ in range(200)} == {1, 2, 3}
+    assert 0.3 < np.mean([draw_steps(rng, 3, 0.5) > 0 for _ in range(1000)]) < 0.7
+
+
+def test_pushforward_window_targets_the_true_frame_from_the_advanced_inputs(dataset):
+    from gns.train import Sampler
+    path, _, _ = dataset
+    trajs = load_split(path, "train")
+    seen = []
+
+    def advance(inputs, friction, bounds, steps):  # stands in for the model: shifts by 1 mm
+        seen.append((inputs.copy(), steps))
+        return inputs + 1e-3
+
+    sampler = Sampler(trajs, 5, 0.0, np.random.default_rng(1))
+    for _ in range(20):
+        inputs, target, fr, _b, s, r = sampler.window(0.029, 2, advance)
+        start, steps = seen[-1]
+        assert steps == 2 and inputs.shape == start.shape == (trajs[0].positions.shape[1], 6, 3)
+        np.testing.assert_allclose(inputs, start + 1e-3)
+        t = next(t for t in trajs if t.friction_angle_deg == fr[0])
+        k = next(k for k in range(t.positions.shape[0] - 7)  # the window's first frame
+                 if np.allclose(t.positions[k:k + 6].transpose(1, 0, 2), start))
+        np.testing.assert_allclose(target, t.positions[k + 5 + 2 + 1])  # 2 frames on, then 1
+        assert len(s) == len(r) and (len(s) == 0 or s.max() < inputs.shape[0])
+
+
+def test_train_with_pushforward_unrolls_the_model(dataset, tmp_path, monkeypatch):
+    import gns.train
+    path, _, _ = dataset
+    calls = []
+    real = gns.train.unroll
+
+    def counting(model, inputs, friction, bounds, steps, device):
+        calls.append(steps)
+        return real(model, inputs, friction, bounds, steps, device)
+
+    monkeypatch.setattr(gns.train, "unroll", counting)
+    tc = TrainConfig(steps=4, batch=2, val_every=10, ckpt_every=4, pushforward_steps=3,
+                     pushforward_prob=1.0)
+    out = train(path, tmp_path / "p.pt", ModelConfig(latent=8, message_passing=1), tc,
+                device="cpu")
+    assert len(calls) == 8 and set(calls) <= {1, 2, 3}
+    assert load_checkpoint(out)[1]["train_config"]["pushforward_steps"] == 3
+    calls.clear()
+    train(path, tmp_path / "q.pt", ModelConfig(latent=8, message_passing=1),
+          replace(tc, pushforward_prob=0.0), device="cpu")
+    assert calls == []
+    with pytest.raises(ValueError, match="pushforward"):
+        train(path, tmp_path / "b.pt", ModelConfig(latent=8, message_passing=1),
+              replace(tc, pushforward_prob=1.5), device="cpu")
+
+
 def test_rollout_divergence_names_the_frame():
     torch.manual_seed(0)
     stats = _stats()

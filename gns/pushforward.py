@@ -1,8 +1,8 @@
 """Pushforward training windows (Brandstetter, Worrall & Welling 2022, "Message passing
 neural PDE solvers"): the model first rolls a window a few frames forward without
-gradients, and the loss then asks for the true next frame from the model's own inputs. It
-learns to correct the drift its rollouts make (input noise only imitates that drift), which
-is what decides where a deposit stops.
+gradients, and the loss then asks for the true next velocity from the model's own inputs.
+It learns to cancel the velocity drift its rollouts make (input noise only imitates that
+drift), which decides where a deposit stops.
 """
 
 from __future__ import annotations

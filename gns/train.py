@@ -91,8 +91,10 @@ class Sampler:
     def window(self, radius: float, unroll: int = 0, advance=None):
         """unroll > 0: a pushforward window; the noisy inputs end `unroll` frames earlier
         and advance(inputs [n, C+1, 3], friction_deg, bounds_m, unroll) (gns.pushforward
-        .unroll with the model) predicts the frames up to the last input frame; the target is
-        then the true next frame."""
+        .unroll with the model) predicts the frames up to the last input frame. As with the
+        noise, the target keeps the true velocity of the last step: the loss asks the model
+        to cancel its velocity drift in one frame (its position drift would need
+        accelerations hundreds of standard deviations large)."""
         t = self.trajs[self.rng.choice(len(self.trajs), p=self.weights)]
         u = unroll
         k = int(self.rng.integers(self.c + u, t.positions.shape[0] - 1))  # last input frame
@@ -106,7 +108,7 @@ class Sampler:
             target = pos[-1] + pos_noise[-1]  # keep the true velocity of the last step
         else:
             inputs = advance(inputs, t.friction_angle_deg, t.bounds_m, u)
-            target = pos[-1]
+            target = inputs[:, -1] + pos[-1] - pos[-2]
         senders, receivers = radius_graph(inputs[:, -1], radius)
         return inputs, target, np.full(n, t.friction_angle_deg), t.bounds_m, senders, receivers
 

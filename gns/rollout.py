@@ -147,8 +147,8 @@ def rollout_error(model, traj, frames: int, device: str = "cpu") -> dict:
     """A validation rollout of up to `frames` frames against the trajectory: error_m (mean
     position error, m), frames (predicted; fewer when the rollout diverged) and, when it
     reached the trajectory's last frame, the relative deposit errors (fractions) runout and
-    displacement_range of gns.metrics and runout_signed (> 0: the front runs too far; None
-    otherwise)."""
+    displacement_range of gns.metrics, runout_signed (> 0: the front runs too far) and
+    height_signed (< 0: the deposit is too flat); None otherwise)."""
     c1 = model.config.input_velocities + 1
     frames = min(frames, traj.positions.shape[0] - c1)
     try:
@@ -159,10 +159,12 @@ def rollout_error(model, traj, frames: int, device: str = "cpu") -> dict:
     done = len(pred) - c1
     true = traj.positions[:len(pred)]
     err = float(np.linalg.norm(pred[c1:] - true[c1:], axis=2).mean()) if done else float("inf")
-    rel, signed = {}, None
+    rel, signed, height = {}, None, None
     if len(pred) == traj.positions.shape[0]:
         got, ref = deposit(pred), deposit(traj.positions)
         rel = relative_errors(got, ref)
         signed = signed_relative_error(got.runout_m, ref.runout_m)
+        height = signed_relative_error(got.height_m, ref.height_m)
     return {"error_m": err, "frames": done, "runout": rel.get("runout"),
-            "displacement_range": rel.get("displacement_range"), "runout_signed": signed}
+            "displacement_range": rel.get("displacement_range"), "runout_signed": signed,
+            "height_signed": height}

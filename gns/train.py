@@ -259,11 +259,14 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
                     entry[f"val_{key}_error_max"] = max(sc[key] for sc in scores)
                 # a checkpoint tends to overrun (or stop short) on every scene at once
                 entry["val_runout_signed"] = [sc["runout_signed"] for sc in scores]
+                entry["val_height_signed"] = [sc["height_signed"] for sc in scores]
                 bias = float(np.mean(entry["val_runout_signed"]))
+                flat = float(np.mean(np.abs(entry["val_height_signed"])))
                 deposit_note = (f", worst scene runout {100 * entry['val_runout_error_max']:.1f}"
                                 f" %, displacement range "
                                 f"{100 * entry['val_displacement_range_error_max']:.1f} %, "
-                                f"mean signed runout error {100 * bias:+.1f} %")
+                                f"mean signed runout error {100 * bias:+.1f} %, mean final "
+                                f"height error {100 * flat:.1f} %")
             history.append(entry)
             print(f"train: step {step} validation rollout mean position error {err:.5f} m"
                   + deposit_note

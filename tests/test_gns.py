@@ -201,6 +201,14 @@ def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
     for key in ("runout", "displacement_range"):
         assert full[0][f"val_{key}_error_max"] == pytest.approx(max(v[key] for v in vals))
     assert full[0]["val_runout_signed"] == pytest.approx([v["runout_signed"] for v in vals])
+    assert full[0]["val_height_signed"] == pytest.approx([v["height_signed"] for v in vals])
+    from gns.metrics import HEIGHT_QUANTILE
+    for v, t in zip(vals, load_split(path, "valid"), strict=True):  # > 0: too tall
+        pred, _ = rollout(load_checkpoint(out)[0], t.positions[:6].astype(np.float64),
+                          t.friction_angle_deg, t.bounds_m, t.positions.shape[0] - 6)
+        got, ref = (np.quantile(p[-1, :, 2].astype(np.float64), HEIGHT_QUANTILE)
+                    for p in (pred, t.positions))
+        assert v["height_signed"] == pytest.approx((got - ref) / ref)
     assert [abs(v["runout_signed"]) for v in vals] == pytest.approx([v["runout"] for v in vals])
     model2, ckpt2 = load_checkpoint(out)
     assert ckpt2["step"] == 9

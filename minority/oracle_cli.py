@@ -233,8 +233,8 @@ def add_oracle_parser(sub) -> None:
                         "1,000 steps); 0 (default) uses the weights as trained")
     q.add_argument("--pushforward", type=int, default=0, metavar="K",
                    help="pushforward training: a window first rolls 1 to K frames forward "
-                        "with the model (no gradient) and then learns the true next frame "
-                        "from its own predictions; 0 (default) off")
+                        "with the model (no gradient) and then learns the true next "
+                        "velocity from its own predictions; 0 (default) off")
     q.add_argument("--pushforward-prob", type=float, default=0.5, metavar="P",
                    help="fraction of windows unrolled when --pushforward is on (default 0.5)")
     q.add_argument("--seed", type=int, default=0)

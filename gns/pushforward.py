@@ -8,30 +8,18 @@ drift), which decides where a deposit stops.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
-from gns.graph import radius_graph
+from gns.rollout import rollout
 
 
 def unroll(model, inputs: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
            steps: int, device: str = "cpu") -> np.ndarray:
-    """The last C+1 frames [n, C+1, 3] (m, float64) after `steps` frames predicted from
-    `inputs` [n, C+1, 3] (m), each clamped to the domain as a rollout clamps it."""
-    window = torch.as_tensor(inputs, dtype=torch.float32, device=device)
-    n = window.shape[0]
-    fr = torch.full((n,), float(friction_deg), device=device)
-    bounds = torch.as_tensor(np.asarray(bounds_m), dtype=torch.float32, device=device)
-    with torch.no_grad():
-        for _ in range(steps):
-            s, r = radius_graph(window[:, -1].cpu().numpy(), model.radius)
-            nxt = model.next_positions(window, fr, bounds, torch.as_tensor(s, device=device),
-                                       torch.as_tensor(r, device=device))
-            nxt = torch.minimum(torch.maximum(nxt, bounds[:, 0]), bounds[:, 1])
-            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
-    out = window.cpu().numpy().astype(np.float64)
-    if not np.isfinite(out).all():
-        raise FloatingPointError(f"pushforward: non-finite positions after {steps} frames")
-    return out
+    """The last C+1 frames [n, C+1, 3] (m, float64) after `steps` frames of gns.rollout from
+    `inputs` [n, C+1, 3] (m): the same steps, domain clamping and divergence errors
+    (RolloutError) as a validation rollout."""
+    frames, _ = rollout(model, np.transpose(inputs, (1, 0, 2)), friction_deg, bounds_m, steps,
+                        device=device)
+    return np.transpose(frames[-inputs.shape[1]:], (1, 0, 2)).astype(np.float64)
 
 
 def draw_steps(rng: np.random.Generator, max_steps: int, prob: float) -> int:

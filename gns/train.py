@@ -88,15 +88,15 @@ class Sampler:
         self.weights = np.array([t.positions.shape[0] - c - 1 for t in trajs], np.float64)
         self.weights /= self.weights.sum()
 
-    def window(self, radius: float, unroll: int = 0, advance=None):
-        """unroll > 0: a pushforward window; the noisy inputs end `unroll` frames earlier
-        and advance(inputs [n, C+1, 3], friction_deg, bounds_m, unroll) (gns.pushforward
-        .unroll with the model) predicts the frames up to the last input frame. As with the
-        noise, the target keeps the true velocity of the last step: the loss asks the model
-        to cancel its velocity drift in one frame (its position drift would need
-        accelerations hundreds of standard deviations large)."""
+    def window(self, radius: float, steps: int = 0, advance=None):
+        """steps > 0: a pushforward window; the noisy inputs end `steps` frames earlier and
+        advance(inputs [n, C+1, 3], friction_deg, bounds_m, steps) (gns.pushforward.unroll
+        with the model) predicts the frames up to the last input frame. As with the noise,
+        the target keeps the true velocity of the last step: the loss asks the model to
+        cancel its velocity drift in one frame (a target of the true position gave losses
+        100 times the plain ones)."""
         t = self.trajs[self.rng.choice(len(self.trajs), p=self.weights)]
-        u = unroll
+        u = steps
         k = int(self.rng.integers(self.c + u, t.positions.shape[0] - 1))  # last input frame
         pos = t.positions[k - self.c - u:k + 2].astype(np.float64)  # [C+u+2, n, 3]
         n = pos.shape[1]

@@ -55,6 +55,8 @@ class SweepConfig:
     geometry: dict
     splits: dict
     named: list[dict] = field(default_factory=list)
+    # [[extra]]: {split, count, geometry overrides}, drawn after every other random scene
+    extra: list[dict] = field(default_factory=list)
     # the MPM runs at a cell coarse_grain times smaller (coarse_grain^3 times the particles);
     # the dataset averages each group of coarse_grain^3 particles back to one at the spacing
     coarse_grain: int = 1
@@ -64,11 +66,31 @@ class SweepConfig:
         return float(self.geometry["particle_spacing_m"])
 
 
+def _read(path: Path) -> dict:
+    """The config's tables; `extends = "base.toml"` starts from that file's (relative to this
+    one), each table of this file updating the base's key by key, `[[extra]]` appended."""
+    raw = tomllib.loads(path.read_text())
+    if "template" in raw:  # relative to the file that names it
+        raw["template"] = str(path.parent / raw["template"])
+    base_name = raw.pop("extends", None)
+    if base_name is None:
+        return raw
+    base = _read(path.parent / base_name)
+    for key, value in raw.items():
+        if key == "extra":
+            base["extra"] = list(base.get("extra", [])) + list(value)
+        elif isinstance(value, dict) and isinstance(base.get(key), dict):
+            base[key] = {**base[key], **value}
+        else:
+            base[key] = value
+    return base
+
+
 def load_config(path: str | Path) -> SweepConfig:
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
-        template = (path.parent / raw["template"]).read_text()
+        raw = _read(path)
+        template = Path(raw["template"]).read_text()
         cfg = SweepConfig(path=path, template=template, seed=int(raw["seed"]),
                           duration_s=float(raw["duration_s"]),
                           output_interval_s=float(raw["output_interval_s"]),
@@ -76,6 +98,7 @@ def load_config(path: str | Path) -> SweepConfig:
                           connectivity_radius_m=float(raw["connectivity_radius_m"]),
                           geometry=raw["geometry"], splits=raw["splits"],
                           named=list(raw.get("named", [])),
+                          extra=list(raw.get("extra", [])),
                           coarse_grain=int(raw.get("coarse_grain", 1)))
     except KeyError as exc:
         raise SweepError(f"{path}: missing key {exc}") from None
@@ -84,6 +107,13 @@ def load_config(path: str | Path) -> SweepConfig:
     if cfg.stride < 1 or cfg.connectivity_radius_m <= 0 or cfg.coarse_grain < 1:
         raise SweepError(f"{path}: stride and coarse_grain must be >= 1 and "
                          "connectivity_radius_m > 0")
+    for i, ex in enumerate(cfg.extra):
+        if ex.get("split") not in ("train", "valid") or int(ex.get("count", 0)) < 1:
+            raise SweepError(f"{path}: [[extra]] {i + 1} needs split = \"train\" or \"valid\" "
+                             "and count >= 1")
+        unknown = set(ex) - {"split", "count"} - set(cfg.geometry)
+        if unknown:
+            raise SweepError(f"{path}: [[extra]] {i + 1}: {sorted(unknown)} are not [geometry] keys")
     return cfg
 
 
@@ -95,46 +125,58 @@ def _count(length: float, width: float, height: float, s: float) -> int:
     return round(length / s) * round(width / s) * round(height / s)
 
 
+def _draw(cfg: SweepConfig, rng: np.random.Generator, plans: list[ScenePlan], split: str,
+          want: int, g: dict) -> None:
+    """Append `split` scenes drawn from the ranges of geometry `g` until there are `want`."""
+    s, cell, sp = cfg.spacing_m, float(g["cell_size_m"]), cfg.splits
+    held_a, held_phi = sp["held_out_aspect_ratio"], sp["held_out_friction_angle_deg"]
+    draws = 0
+    while sum(p.split == split for p in plans) < want:
+        draws += 1
+        if draws > MAX_DRAWS:
+            raise SweepError(f"{cfg.path}: cannot draw {want} {split} scenes within the "
+                             "geometry bounds; widen the ranges")
+        length = round(rng.uniform(*g["length_m"]) / s) * s
+        width = round(rng.uniform(*g["width_m"]) / cell) * cell
+        a = rng.uniform(*g["aspect_ratio"])
+        height = min(round(a * length / s) * s, float(g["max_height_m"]))
+        phi = round(float(rng.uniform(*g["friction_angle_deg"])), 2)
+        if split == "test":  # alternate: a held-out aspect ratio, a held-out friction
+            if sum(p.split == "test" for p in plans) % 2 == 0:
+                a = rng.uniform(*held_a[0])
+            else:
+                phi = round(float(rng.uniform(*held_phi[0])), 2)
+            height = min(round(a * length / s) * s, float(g["max_height_m"]))
+        a_real = height / length
+        held = _in_bands(a_real, held_a) or _in_bands(phi, held_phi)
+        if held != (split == "test"):
+            continue
+        n = _count(length, width, height, s)
+        if not g["particles"][0] <= n <= g["particles"][1]:
+            continue
+        i = sum(p.split == split for p in plans)
+        plans.append(ScenePlan(f"{split}_{i:03d}", split, round(length, 6), round(width, 6),
+                               round(height, 6), phi, float(g["domain_length_m"]), n))
+
+
 def plan(cfg: SweepConfig) -> list[ScenePlan]:
     """Scenes of every split, deterministic in the config's seed."""
-    g, sp = cfg.geometry, cfg.splits
-    s, cell = cfg.spacing_m, float(g["cell_size_m"])
+    sp = cfg.splits
     rng = np.random.default_rng(cfg.seed)
-    held_a, held_phi = sp["held_out_aspect_ratio"], sp["held_out_friction_angle_deg"]
     plans: list[ScenePlan] = []
-    # extra_train / extra_valid are drawn after the test scenes from the same stream, so that
-    # enlarging a sweep keeps every scene it had (and its runs) and adds new ones
-    rounds = [(name, int(sp[name])) for name in SPLITS] + [
-        ("train", int(sp["train"]) + int(sp.get("extra_train", 0))),
-        ("valid", int(sp["valid"]) + int(sp.get("extra_valid", 0)))]
-    for split, want in rounds:
-        draws = 0
-        while sum(p.split == split for p in plans) < want:
-            draws += 1
-            if draws > MAX_DRAWS:
-                raise SweepError(f"{cfg.path}: cannot draw {want} {split} scenes within the "
-                                 "geometry bounds; widen the ranges")
-            length = round(rng.uniform(*g["length_m"]) / s) * s
-            width = round(rng.uniform(*g["width_m"]) / cell) * cell
-            a = rng.uniform(*g["aspect_ratio"])
-            height = min(round(a * length / s) * s, float(g["max_height_m"]))
-            phi = round(float(rng.uniform(*g["friction_angle_deg"])), 2)
-            if split == "test":  # alternate: a held-out aspect ratio, a held-out friction
-                if sum(p.split == "test" for p in plans) % 2 == 0:
-                    a = rng.uniform(*held_a[0])
-                else:
-                    phi = round(float(rng.uniform(*held_phi[0])), 2)
-                height = min(round(a * length / s) * s, float(g["max_height_m"]))
-            a_real = height / length
-            held = _in_bands(a_real, held_a) or _in_bands(phi, held_phi)
-            if held != (split == "test"):
-                continue
-            n = _count(length, width, height, s)
-            if not g["particles"][0] <= n <= g["particles"][1]:
-                continue
-            i = sum(p.split == split for p in plans)
-            plans.append(ScenePlan(f"{split}_{i:03d}", split, round(length, 6), round(width, 6),
-                                   round(height, 6), phi, float(g["domain_length_m"]), n))
+    # extra_train / extra_valid, then the [[extra]] tables, are drawn after the test scenes
+    # from the same stream, so that enlarging a sweep keeps every scene it had (and its runs)
+    rounds = [(name, int(sp[name]), {}) for name in SPLITS] + [
+        ("train", int(sp["train"]) + int(sp.get("extra_train", 0)), {}),
+        ("valid", int(sp["valid"]) + int(sp.get("extra_valid", 0)), {})]
+    for ex in cfg.extra:
+        split = ex["split"]
+        have = max(w for name, w, _ in rounds if name == split)
+        rounds.append((split, have + int(ex["count"]),
+                       {k: v for k, v in ex.items() if k not in ("split", "count")}))
+    for split, want, overrides in rounds:
+        _draw(cfg, rng, plans, split, want, {**cfg.geometry, **overrides})
+    g, s = cfg.geometry, cfg.spacing_m
     for named in cfg.named:
         plans.append(ScenePlan(
             named["name"], "test", float(named["length_m"]), float(named["width_m"]),

@@ -14,7 +14,7 @@ from gns.dataset import build, load_metadata, load_split
 from gns.export import write_vtk_series
 from gns.model import GNS, ModelConfig
 from gns.rollout import RolloutError, initial_state, rollout
-from gns.sweep import ScenePlan, load_config, plan
+from gns.sweep import ScenePlan, SweepError, load_config, plan
 from gns.train import TrainConfig, combined_stats, load_checkpoint, ship, train
 
 SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
@@ -57,6 +57,36 @@ def test_sweep_extra_scenes_keep_the_planned_ones():
         f"train_{i:03d}" for i in range(n_train, n_train + 5)}
     assert len({(p.length_m, p.width_m, p.height_m, p.friction_angle_deg) for p in grown}) \
         == len(grown)
+
+
+def test_sweep_extends_and_extra_tables_add_scenes_in_their_ranges(tmp_path):
+    """A config that extends another keeps the base's scenes; [[extra]] tables draw after
+    them from their own geometry ranges, within the held-out rules; bad tables are errors."""
+    cfg_long = SWEEP.with_name("column_sweep_cg2_long.toml")
+    base = load_config(SWEEP.with_name("column_sweep_cg2.toml"))
+    base.splits = {**base.splits, "extra_train": 48, "extra_valid": 4}
+    before = {p.name: p for p in plan(base)}
+    grown = plan(load_config(cfg_long))
+    assert {p.name: p for p in grown if p.name in before} == before
+    added = [p for p in grown if p.name not in before]
+    assert sorted(p.split for p in added) == ["train"] * 12 + ["valid"] * 2
+    assert {p.name for p in added if p.split == "valid"} == {"valid_008", "valid_009"}
+    held_a = base.splits["held_out_aspect_ratio"][0]
+    held_phi = base.splits["held_out_friction_angle_deg"][0]
+    for p in added:
+        assert 0.2 - 1e-9 <= p.length_m <= 0.32 + 1e-9 and p.width_m in (0.096, 0.128), p
+        assert 800 <= p.particles <= 3000, p
+        assert not held_a[0] <= p.aspect_ratio <= held_a[1], p
+        assert not held_phi[0] <= p.friction_angle_deg <= held_phi[1], p
+    assert max(p.length_m for p in before.values() if p.split != "test") <= 0.2 + 1e-9
+
+    bad = tmp_path / "bad.toml"
+    for table, word in (('split = "test"\ncount = 2', "split"),
+                        ('split = "train"\ncount = 0', "count"),
+                        ('split = "train"\ncount = 1\nlenght_m = [0.2, 0.3]', "lenght_m")):
+        bad.write_text(f'extends = "{cfg_long}"\n[[extra]]\n{table}\n')
+        with pytest.raises(SweepError, match=word):
+            load_config(bad)
 
 
 def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, capsys):

@@ -66,7 +66,7 @@ class SweepConfig:
         return float(self.geometry["particle_spacing_m"])
 
 
-def _read(path: Path) -> dict:
+def _read(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     """The config's tables; `extends = "base.toml"` starts from that file's (relative to this
     one), each table of this file updating the base's key by key, `[[extra]]` appended."""
     raw = tomllib.loads(path.read_text())
@@ -75,7 +75,9 @@ def _read(path: Path) -> dict:
     base_name = raw.pop("extends", None)
     if base_name is None:
         return raw
-    base = _read(path.parent / base_name)
+    if path.resolve() in seen:
+        raise SweepError(f"{path}: `extends` loops back to it")
+    base = _read(path.parent / base_name, seen + (path.resolve(),))
     for key, value in raw.items():
         if key == "extra":
             base["extra"] = list(base.get("extra", [])) + list(value)
@@ -107,13 +109,17 @@ def load_config(path: str | Path) -> SweepConfig:
     if cfg.stride < 1 or cfg.connectivity_radius_m <= 0 or cfg.coarse_grain < 1:
         raise SweepError(f"{path}: stride and coarse_grain must be >= 1 and "
                          "connectivity_radius_m > 0")
+    # one resolution per sweep: scene_toml and the dataset use the [geometry] cell and spacing
+    ranges = set(cfg.geometry) - {"particle_spacing_m", "cell_size_m"}
     for i, ex in enumerate(cfg.extra):
-        if ex.get("split") not in ("train", "valid") or int(ex.get("count", 0)) < 1:
+        count = ex.get("count")
+        if ex.get("split") not in ("train", "valid") or type(count) is not int or count < 1:
             raise SweepError(f"{path}: [[extra]] {i + 1} needs split = \"train\" or \"valid\" "
-                             "and count >= 1")
-        unknown = set(ex) - {"split", "count"} - set(cfg.geometry)
+                             "and an integer count >= 1")
+        unknown = set(ex) - {"split", "count"} - ranges
         if unknown:
-            raise SweepError(f"{path}: [[extra]] {i + 1}: {sorted(unknown)} are not [geometry] keys")
+            raise SweepError(f"{path}: [[extra]] {i + 1}: {sorted(unknown)} are not [geometry] "
+                             "ranges it may override")
     return cfg
 
 
@@ -172,7 +178,7 @@ def plan(cfg: SweepConfig) -> list[ScenePlan]:
     for ex in cfg.extra:
         split = ex["split"]
         have = max(w for name, w, _ in rounds if name == split)
-        rounds.append((split, have + int(ex["count"]),
+        rounds.append((split, have + ex["count"],
                        {k: v for k, v in ex.items() if k not in ("split", "count")}))
     for split, want, overrides in rounds:
         _draw(cfg, rng, plans, split, want, {**cfg.geometry, **overrides})

@@ -83,10 +83,15 @@ def test_sweep_extends_and_extra_tables_add_scenes_in_their_ranges(tmp_path):
     bad = tmp_path / "bad.toml"
     for table, word in (('split = "test"\ncount = 2', "split"),
                         ('split = "train"\ncount = 0', "count"),
-                        ('split = "train"\ncount = 1\nlenght_m = [0.2, 0.3]', "lenght_m")):
+                        ('split = "train"\ncount = "2"', "count"),
+                        ('split = "train"\ncount = 1\nlenght_m = [0.2, 0.3]', "lenght_m"),
+                        ('split = "train"\ncount = 1\ncell_size_m = 0.016', "cell_size_m")):
         bad.write_text(f'extends = "{cfg_long}"\n[[extra]]\n{table}\n')
         with pytest.raises(SweepError, match=word):
             load_config(bad)
+    bad.write_text(f'extends = "{bad.name}"\n')
+    with pytest.raises(SweepError, match="loops back"):
+        load_config(bad)
 
 
 def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, capsys):

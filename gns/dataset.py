@@ -40,29 +40,47 @@ class Trajectory:
     bounds_m: np.ndarray  # [3, 2] lo, hi per axis, m
 
 
-def coarse_grain(positions: np.ndarray, spacing_m: float, factor: int) -> np.ndarray:
-    """[frames, m, 3]: the mean position of each group of particles that start in one cube of
-    edge factor * spacing_m (a cube of the lattice anchored at the origin), from positions
-    [frames, n, 3] (m) of particles seeded at spacing_m; frame 0 is the seeding. A body whose
-    extent is a whole number of cubes gives factor^3 particles per group, and the means start
-    on the lattice (i + 1/2) * factor * spacing_m: the same particles a run at that spacing
+COARSE_GRAIN_METHODS = ("mean", "sample")
+
+
+def coarse_grain(positions: np.ndarray, spacing_m: float, factor: int, method: str = "mean",
+                 seed: int = 0) -> np.ndarray:
+    """[frames, m, 3]: one particle per group of particles that start in one cube of edge
+    factor * spacing_m (a cube of the lattice anchored at the origin), from positions
+    [frames, n, 3] (m) of particles seeded at spacing_m; frame 0 is the seeding. Method
+    "mean": the group's mean position. Method "sample": one member drawn per group (seeded),
+    shifted by its offset from the group's mean at frame 0, so it starts where the mean does
+    but moves as a material point of the run; unlike the mean, it keeps the spread within
+    groups, so high quantiles of the sample (a deposit's front) estimate the run's. A body
+    whose extent is a whole number of cubes gives factor^3 particles per group, and frame 0
+    lies on the lattice (i + 1/2) * factor * spacing_m: the particles a run at that spacing
     seeds. Groups are ordered by their cube (x, then y, then z)."""
+    if method not in COARSE_GRAIN_METHODS:
+        raise DatasetError(f"coarse-grain method {method!r}, expected one of "
+                           f"{', '.join(COARSE_GRAIN_METHODS)}")
     if factor == 1:
         return positions
     cube = np.floor(positions[0].astype(np.float64) / (factor * spacing_m) + 1e-6).astype(np.int64)
     keys, group = np.unique(cube, axis=0, return_inverse=True)
     group = group.reshape(-1)
-    counts = np.bincount(group, minlength=len(keys)).astype(np.float64)
-    out = np.empty((positions.shape[0], len(keys), 3), dtype=np.float64)
+    counts = np.bincount(group, minlength=len(keys))
+    means = np.empty((positions.shape[0] if method == "mean" else 1, len(keys), 3))
     for a in range(3):
-        for k in range(positions.shape[0]):
-            out[k, :, a] = np.bincount(group, positions[k, :, a], minlength=len(keys)) / counts
-    return out
+        for k in range(means.shape[0]):
+            means[k, :, a] = np.bincount(group, positions[k, :, a], minlength=len(keys)) / counts
+    if method == "mean":
+        return means
+    order = np.argsort(group, kind="stable")  # members of group g: order[start[g]:][:counts[g]]
+    start = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    pick = order[start + np.random.default_rng(seed).integers(0, counts)]
+    offset = positions[0, pick].astype(np.float64) - means[0]  # [m, 3]
+    return positions[:, pick].astype(np.float64) - offset
 
 
-def read_sim_trajectory(path: Path, stride: int, factor: int = 1) -> tuple[np.ndarray, dict]:
-    """Positions every stride-th frame [frames, n, 3], coarse-grained by `factor`
-    (coarse_grain), and the run's attributes (particle_spacing_m: after coarse-graining)."""
+def read_sim_trajectory(path: Path, stride: int, factor: int = 1,
+                        method: str = "mean") -> tuple[np.ndarray, dict]:
+    """Positions every stride-th frame [frames, n, 3], coarse-grained by `factor` with
+    `method` (coarse_grain), and the run's attributes (particle_spacing_m: after it)."""
     with h5py.File(path, "r") as f:
         frames = len(f["time"])
         pos = f["positions"][:frames:stride]
@@ -74,7 +92,7 @@ def read_sim_trajectory(path: Path, stride: int, factor: int = 1) -> tuple[np.nd
     spacing = float(attrs["particle_spacing_m"])
     attrs["mpm_particle_spacing_m"] = spacing
     attrs["particle_spacing_m"] = spacing * factor
-    return coarse_grain(pos, spacing, factor).astype(np.float32), attrs
+    return coarse_grain(pos, spacing, factor, method).astype(np.float32), attrs
 
 
 def _stats(trajs: list[np.ndarray]) -> dict:
@@ -104,9 +122,9 @@ def _stats(trajs: list[np.ndarray]) -> dict:
 
 def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
           connectivity_radius_m: float, config_path: str = "", coarse_grain: int = 1,
-          log=sys.stderr) -> dict:
+          coarse_grain_method: str = "mean", log=sys.stderr) -> dict:
     """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir, coarse-grained by
-    `coarse_grain` (1: as run); return the metadata."""
+    `coarse_grain` (1: as run) with `coarse_grain_method`; return the metadata."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}
@@ -115,7 +133,7 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
     phis = []
     try:
         for plan, path in runs:
-            pos, attrs = read_sim_trajectory(path, stride, coarse_grain)
+            pos, attrs = read_sim_trajectory(path, stride, coarse_grain, coarse_grain_method)
             dt = float(attrs["output_interval_s"]) * stride
             frame_dt.add(round(dt, 12))
             spacing.add(round(float(attrs["particle_spacing_m"]), 9))
@@ -150,7 +168,7 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
         "bounds_m": [[0.0, float(h)] for h in bounds_hi],
         "connectivity_radius_m": connectivity_radius_m,
         "particle_spacing_m": spacing.pop(), "frame_interval_s": frame_dt.pop(),
-        "coarse_grain": coarse_grain,
+        "coarse_grain": coarse_grain, "coarse_grain_method": coarse_grain_method,
         **_stats(train_pos),
         # one friction angle in every train scene: the feature is 0, its scale 1 (not 0/0)
         "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)) or 1.0,

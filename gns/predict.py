@@ -14,8 +14,9 @@ from gns.export import write_hdf5, write_vtk_series
 from gns.rollout import initial_state, rollout
 from gns.train import load_checkpoint
 
-# (particle spacing m, frame interval s, C, coarse_grain) -> [C + 1, n, 3] m or None
-HistoryFn = Callable[[float, float, int, int], "np.ndarray | None"]
+# (particle spacing m, frame interval s, C, coarse_grain, coarse_grain_method)
+#   -> [C + 1, n, 3] m or None
+HistoryFn = Callable[[float, float, int, int, str], "np.ndarray | None"]
 
 
 @dataclass
@@ -49,7 +50,8 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
             history: np.ndarray | HistoryFn | None = None) -> Prediction:
     """Seed `scene` at the model's spacing and roll it out for duration_s (default: the
     scene's). `history` [C + 1, n, 3] (m): the first frames, e.g. from the MPM, or a function
-    of (particle spacing m, frame interval s, C, the training data's coarse_grain) giving them
+    of (particle spacing m, frame interval s, C, the training data's coarse_grain and its
+    method) giving them
     or None (None: C + 1 frames at rest). Raises RolloutError when the rollout diverges,
     ValueError on bad input."""
     model, ckpt = load_checkpoint(checkpoint, device)
@@ -58,7 +60,8 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
     init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"], c)
     if callable(history):
         history = history(float(st["particle_spacing_m"]), float(st["frame_interval_s"]), c,
-                          int(st.get("coarse_grain", 1)))
+                          int(st.get("coarse_grain", 1)),
+                          str(st.get("coarse_grain_method", "mean")))
     if history is not None:
         if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
             raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")

@@ -19,6 +19,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from gns.dataset import COARSE_GRAIN_METHODS
+
 SPLITS = ("train", "valid", "test")
 MAX_DRAWS = 100_000  # rejection-sampling attempts before the config is declared infeasible
 
@@ -58,8 +60,10 @@ class SweepConfig:
     # [[extra]]: {split, count, geometry overrides}, drawn after every other random scene
     extra: list[dict] = field(default_factory=list)
     # the MPM runs at a cell coarse_grain times smaller (coarse_grain^3 times the particles);
-    # the dataset averages each group of coarse_grain^3 particles back to one at the spacing
+    # the dataset makes each group of coarse_grain^3 particles one at the spacing, by the
+    # group's mean or by one sampled member (gns.dataset.coarse_grain)
     coarse_grain: int = 1
+    coarse_grain_method: str = "mean"
 
     @property
     def spacing_m(self) -> float:
@@ -101,7 +105,8 @@ def load_config(path: str | Path) -> SweepConfig:
                           geometry=raw["geometry"], splits=raw["splits"],
                           named=list(raw.get("named", [])),
                           extra=list(raw.get("extra", [])),
-                          coarse_grain=int(raw.get("coarse_grain", 1)))
+                          coarse_grain=int(raw.get("coarse_grain", 1)),
+                          coarse_grain_method=str(raw.get("coarse_grain_method", "mean")))
     except KeyError as exc:
         raise SweepError(f"{path}: missing key {exc}") from None
     except (OSError, tomllib.TOMLDecodeError) as exc:
@@ -109,6 +114,9 @@ def load_config(path: str | Path) -> SweepConfig:
     if cfg.stride < 1 or cfg.connectivity_radius_m <= 0 or cfg.coarse_grain < 1:
         raise SweepError(f"{path}: stride and coarse_grain must be >= 1 and "
                          "connectivity_radius_m > 0")
+    if cfg.coarse_grain_method not in COARSE_GRAIN_METHODS:
+        raise SweepError(f"{path}: coarse_grain_method {cfg.coarse_grain_method!r}, expected "
+                         f"one of {', '.join(COARSE_GRAIN_METHODS)}")
     # one resolution per sweep: scene_toml and the dataset use the [geometry] cell and spacing
     ranges = set(cfg.geometry) - {"particle_spacing_m", "cell_size_m"}
     for i, ex in enumerate(cfg.extra):

@@ -49,10 +49,16 @@ class TrainConfig:
     seed: int = 0
 
 
+def coarse_grain_stats(meta: dict) -> dict:
+    """How the dataset was coarse-grained from the MPM (older datasets: factor 1, "mean")."""
+    return {"coarse_grain": int(meta.get("coarse_grain", 1)),
+            "coarse_grain_method": str(meta.get("coarse_grain_method", "mean"))}
+
+
 def combined_stats(meta: dict, noise_std: float) -> dict:
     """Metadata statistics with the noise folded into the stds (as learning_to_simulate)."""
     stats = {k: meta[k] for k in STAT_KEYS}
-    stats["coarse_grain"] = int(meta.get("coarse_grain", 1))  # how the MPM data were made
+    stats.update(coarse_grain_stats(meta))  # how the MPM data were made
     for key in ("vel_std", "acc_std"):
         stats[key] = [math.sqrt(s * s + noise_std * noise_std) for s in meta[key]]
     return stats
@@ -160,7 +166,7 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
             if not math.isclose(float(stats[key]), float(meta[key]), rel_tol=1e-6):
                 raise ValueError(f"--init: the checkpoint's {key} {stats[key]} is not the "
                                  f"dataset's {meta[key]}")
-        stats = {**stats, "coarse_grain": int(meta.get("coarse_grain", 1))}  # the data's
+        stats = {**stats, **coarse_grain_stats(meta)}  # the data's
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)

@@ -21,7 +21,8 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
         runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
         meta = build(runs, args.out, stride=cfg.stride,
                      connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config),
-                     coarse_grain=cfg.coarse_grain)
+                     coarse_grain=cfg.coarse_grain,
+                     coarse_grain_method=cfg.coarse_grain_method)
     except (SweepError, DatasetError, OSError) as exc:
         print(f"minority oracle dataset: error: {exc}", file=sys.stderr)
         return 1

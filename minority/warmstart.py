@@ -21,14 +21,14 @@ from sim.scene import SceneError, parse_scene
 
 
 def mpm_history(scene_toml: Path, spacing_m: float, frame_interval_s: float,
-                frames: int, coarse_grain: int = 1) -> np.ndarray:
+                frames: int, coarse_grain: int = 1, method: str = "mean") -> np.ndarray:
     """[frames + 1, n, 3] positions (m) at t = 0, dt, ... of the scene simulated by the MPM
     with particles at `spacing_m` (one per cell of that size, or two per axis in cells
     twice as large when the domain is not a whole number of the smaller cells). With
     coarse_grain k > 1 (a model trained on coarse-grained MPM runs), the MPM runs as its
-    training data did, two particles per axis at spacing_m / k, and each group of k^3 is
-    averaged to one (gns.dataset.coarse_grain)."""
-    from gns.dataset import coarse_grain as average_groups
+    training data did, two particles per axis at spacing_m / k, and each group of k^3 becomes
+    one by `method` (gns.dataset.coarse_grain: "mean" or "sample")."""
+    from gns import dataset
 
     data = tomllib.loads(Path(scene_toml).read_text())
     errors = []
@@ -49,7 +49,7 @@ def mpm_history(scene_toml: Path, spacing_m: float, frame_interval_s: float,
         for k in range(frames + 1):
             sim.advance_to(k * frame_interval_s)
             out.append(sim.fields_by_id()["positions"].astype(np.float64))
-        return average_groups(np.stack(out), fine, coarse_grain)
+        return dataset.coarse_grain(np.stack(out), fine, coarse_grain, method)
     raise ValueError(f"{scene_toml}: cannot seed the MPM at the model's spacing {spacing_m} m "
                      f"({'; '.join(errors)})")
 
@@ -63,15 +63,17 @@ def predict_scene(checkpoint: Path, scene: Path, duration_s: float | None = None
     out = log if log is not None else sys.stderr
 
     def from_mpm(spacing_m: float, frame_interval_s: float, frames: int,
-                 coarse_grain: int = 1) -> np.ndarray | None:
+                 coarse_grain: int = 1, method: str = "mean") -> np.ndarray | None:
         try:
-            history = mpm_history(scene, spacing_m, frame_interval_s, frames, coarse_grain)
+            history = mpm_history(scene, spacing_m, frame_interval_s, frames, coarse_grain,
+                                  method)
         except ValueError as exc:
             print(f"rollout: warning: {exc}; starting from rest instead", file=out)
             return None
         print(f"rollout: the first {frames} frames ({frames * frame_interval_s:.3f} s) from "
               f"the MPM at {spacing_m / coarse_grain} m"
-              + (f", coarse-grained by {coarse_grain}" if coarse_grain > 1 else ""), file=out)
+              + (f", coarse-grained by {coarse_grain} ({method})" if coarse_grain > 1 else ""),
+              file=out)
         return history
 
     return predict(checkpoint, scene, duration_s, device, progress, log,

@@ -484,7 +484,7 @@ def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):
           replace(tc, steps=3, noise_std=1e-4), init=base, device="cpu")
     model, ckpt = load_checkpoint(tuned)
     assert ckpt["step"] == 3 and ckpt["model_config"] == start["model_config"]
-    assert ckpt["stats"] == {**start["stats"], "coarse_grain": 1}
+    assert ckpt["stats"] == {**start["stats"], "coarse_grain": 1, "coarse_grain_method": "mean"}
     assert ckpt["history"][0] == {"init": str(base), "init_step": 4}
     assert ckpt["train_config"]["noise_std"] == 1e-4
     changed = [not torch.equal(ckpt["state_dict"][k], start["state_dict"][k])

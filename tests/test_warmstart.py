@@ -40,6 +40,10 @@ def test_coarse_grained_history_runs_finer_and_starts_on_the_gns_lattice(tmp_pat
     np.testing.assert_allclose(order(fine[0]), order(rest), atol=1e-9)
     assert not np.allclose(fine[-1], coarse[-1])  # another MPM resolution, another motion
     assert fine[0, :, 2].mean() > fine[-1, :, 2].mean()
+    # sampled members of the same MPM run: on the lattice at rest, near the means later
+    sampled = mpm_history(scene, spacing, dt, c, coarse_grain=2, method="sample")
+    np.testing.assert_allclose(order(sampled[0]), order(rest), atol=1e-9)
+    assert 0 < np.abs(sampled[-1] - fine[-1]).max() < spacing / 2
 
 
 def test_mpm_history_refuses_a_domain_it_cannot_seed(tmp_path):

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from gns.dataset import load_metadata, load_split
+from gns.events import find_events
 from gns.graph import radius_graph
 from gns.model import GNS, ModelConfig
 from gns.pushforward import draw_steps, unroll
@@ -46,6 +47,7 @@ class TrainConfig:
     ema_decay: float = 0.0  # > 0: validate and save an exponential moving average of weights
     pushforward_steps: int = 0  # > 0: windows unrolled 1..this many frames (gns.pushforward)
     pushforward_prob: float = 0.5  # the fraction of windows unrolled
+    moving_fraction: float = 0.0  # > 0: this fraction of windows ends while its scene moves
     seed: int = 0
 
 
@@ -89,10 +91,17 @@ def ship(src: str | Path, dst: str | Path) -> Path:
 class Sampler:
     """Random training windows: C+1 input frames and the next frame, with noise."""
 
-    def __init__(self, trajs, c: int, noise_std: float, rng: np.random.Generator) -> None:
+    def __init__(self, trajs, c: int, noise_std: float, rng: np.random.Generator,
+                 moving_fraction: float = 0.0, frame_interval_s: float = 1.0) -> None:
         self.trajs, self.c, self.noise, self.rng = trajs, c, noise_std, rng
         self.weights = np.array([t.positions.shape[0] - c - 1 for t in trajs], np.float64)
         self.weights /= self.weights.sum()
+        # a scene moves until its kinetic energy is back at rest (gns.events), plus C frames
+        # so that windows see it stop; most frames of a 1 s run are at rest otherwise
+        self.moving_fraction = moving_fraction
+        self.rest_frame = [min(t.positions.shape[0] - 1, c + 1 + round(
+            find_events(t.positions, frame_interval_s).runout_end_s / frame_interval_s))
+            for t in trajs] if moving_fraction > 0 else []
 
     def window(self, radius: float, steps: int = 0, advance=None):
         """steps > 0: a pushforward window; the noisy inputs end `steps` frames earlier and
@@ -101,9 +110,12 @@ class Sampler:
         the target keeps the true velocity of the last step: the loss asks the model to
         cancel its velocity drift in one frame (a target of the true position gave losses
         100 times the plain ones)."""
-        t = self.trajs[self.rng.choice(len(self.trajs), p=self.weights)]
-        u = steps
-        k = int(self.rng.integers(self.c + u, t.positions.shape[0] - 1))  # last input frame
+        i = self.rng.choice(len(self.trajs), p=self.weights)
+        t, u = self.trajs[i], steps
+        end = t.positions.shape[0] - 1
+        if self.moving_fraction > 0 and self.rng.random() < self.moving_fraction:
+            end = max(self.c + u + 1, min(end, self.rest_frame[i]))
+        k = int(self.rng.integers(self.c + u, end))  # last input frame
         pos = t.positions[k - self.c - u:k + 2].astype(np.float64)  # [C+u+2, n, 3]
         n = pos.shape[1]
         vel_noise = self.rng.normal(0.0, self.noise / math.sqrt(self.c), (self.c, n, 3))
@@ -146,6 +158,8 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     """
     if resume and init:
         raise ValueError("give --resume or --init, not both")
+    if not 0 <= cfg.moving_fraction <= 1:
+        raise ValueError(f"moving_fraction {cfg.moving_fraction} must be within [0, 1]")
     from gns.rollout import rollout_error
     from gns.runtime import tune_allocator
 
@@ -192,7 +206,8 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed + step)
-    sampler = Sampler(train_trajs, model_config.input_velocities, cfg.noise_std, rng)
+    sampler = Sampler(train_trajs, model_config.input_velocities, cfg.noise_std, rng,
+                      cfg.moving_fraction, float(meta["frame_interval_s"]))
 
     def advance(inputs, friction_deg, bounds_m, steps):  # the weights being trained
         return unroll(model, inputs, friction_deg, bounds_m, steps, device)

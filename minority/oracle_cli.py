@@ -48,7 +48,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      val_every=args.val_every, val_frames=args.val_frames,
                      ckpt_every=args.ckpt_every, keep_validated=args.keep_validated,
                      ema_decay=args.ema_decay, pushforward_steps=args.pushforward,
-                     pushforward_prob=args.pushforward_prob, seed=args.seed)
+                     pushforward_prob=args.pushforward_prob,
+                     moving_fraction=args.moving_fraction, seed=args.seed)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     device=args.device)
@@ -238,6 +239,10 @@ def add_oracle_parser(sub) -> None:
                         "velocity from its own predictions; 0 (default) off")
     q.add_argument("--pushforward-prob", type=float, default=0.5, metavar="P",
                    help="fraction of windows unrolled when --pushforward is on (default 0.5)")
+    q.add_argument("--moving-fraction", type=float, default=0.0, metavar="F",
+                   help="fraction of windows that end while their scene still moves (before "
+                        "its kinetic energy is back at rest, gns.events); the rest are drawn "
+                        "from the whole run. 0 (default): every frame alike")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", help="cpu or cuda (default: cuda when available)")

@@ -22,6 +22,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from gns.metrics import deposit
+
 FORMAT = "minority-gns-dataset/1"
 SPLITS = ("train", "valid", "test")
 INPUT_VELOCITIES = 5  # C: velocities of the last C frames are node features
@@ -80,7 +82,8 @@ def coarse_grain(positions: np.ndarray, spacing_m: float, factor: int, method: s
 def read_sim_trajectory(path: Path, stride: int, factor: int = 1,
                         method: str = "mean") -> tuple[np.ndarray, dict]:
     """Positions every stride-th frame [frames, n, 3], coarse-grained by `factor` with
-    `method` (coarse_grain), and the run's attributes (particle_spacing_m: after it)."""
+    `method` (coarse_grain), and the run's attributes (particle_spacing_m: after it;
+    mpm_deposit: gns.metrics.deposit of the run itself, before coarse-graining)."""
     with h5py.File(path, "r") as f:
         frames = len(f["time"])
         pos = f["positions"][:frames:stride]
@@ -92,6 +95,7 @@ def read_sim_trajectory(path: Path, stride: int, factor: int = 1,
     spacing = float(attrs["particle_spacing_m"])
     attrs["mpm_particle_spacing_m"] = spacing
     attrs["particle_spacing_m"] = spacing * factor
+    attrs["mpm_deposit"] = deposit(pos).as_dict()
     return coarse_grain(pos, spacing, factor, method).astype(np.float32), attrs
 
 
@@ -152,7 +156,10 @@ def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
                            "length_m": plan.length_m, "width_m": plan.width_m,
                            "height_m": plan.height_m,
                            "friction_angle_deg": attrs["friction_angle_deg"],
-                           "source": str(path)})
+                           "source": str(path),
+                           # the MPM run's own deposit, at its resolution (the model's data
+                           # are coarse-grained from it when coarse_grain > 1)
+                           "mpm_deposit": attrs["mpm_deposit"]})
             print(f"dataset: {plan.split}/{plan.name} {pos.shape[0]} frames x {pos.shape[1]} "
                   "particles", file=log, flush=True)
     finally:

@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from gns.dataset import load_split
-from gns.metrics import deposit, mean_position_error, relative_errors
+from gns.dataset import load_metadata, load_split
+from gns.metrics import Deposit, deposit, mean_position_error, relative_errors
 from gns.rollout import RolloutError, rollout
 
 
@@ -16,8 +16,13 @@ def evaluate(model, dataset, split: str = "test", *, device: str = "cpu",
              names: list[str] | None = None, log=sys.stderr) -> list[dict]:
     """One row per scene: deposit measures of both, relative errors, mean position error (m)
     over the predicted frames (not the C+1 MPM frames it starts from), rollout wall time (s).
-    The rollout starts from the scene's first C+1 MPM frames and runs to its last frame."""
+    The rollout starts from the scene's first C+1 MPM frames and runs to its last frame.
+    Scenes of a coarse-grained dataset are also scored against their MPM run at its own
+    resolution (mpm_full, relative_error_full): the run the model is the oracle of."""
     c1 = model.config.input_velocities + 1
+    meta = load_metadata(dataset)
+    full = {sc["name"]: Deposit(**sc["mpm_deposit"]) for sc in meta["scenes"]
+            if int(meta.get("coarse_grain", 1)) > 1 and "mpm_deposit" in sc}
     rows = []
     for traj in load_split(dataset, split):
         if names and traj.name not in names:
@@ -39,11 +44,18 @@ def evaluate(model, dataset, split: str = "test", *, device: str = "cpu",
                "mpm": ref_dep.as_dict(), "gns": gns_dep.as_dict(),
                "relative_error": relative_errors(gns_dep, ref_dep),
                "mean_position_error_m": mean_position_error(pred[c1:], traj.positions[c1:])}
+        if traj.name in full:
+            row["mpm_full"] = full[traj.name].as_dict()
+            row["relative_error_full"] = relative_errors(gns_dep, full[traj.name])
         rows.append(row)
         e = row["relative_error"]
         print(f"evaluate: {traj.name} ({row['particles']} particles): runout "
               f"{gns_dep.runout_m:.3f} vs {ref_dep.runout_m:.3f} m ({100 * e['runout']:.1f}%), "
               f"height {100 * e['height']:.1f}%, displacement range "
               f"{100 * e['displacement_range']:.1f}%, mean position error "
-              f"{row['mean_position_error_m'] * 1000:.1f} mm, {wall:.1f} s", file=log, flush=True)
+              f"{row['mean_position_error_m'] * 1000:.1f} mm, {wall:.1f} s"
+              + (f"; against the run at its resolution: runout "
+                 f"{100 * row['relative_error_full']['runout']:.1f}%, displacement range "
+                 f"{100 * row['relative_error_full']['displacement_range']:.1f}%"
+                 if traj.name in full else ""), file=log, flush=True)
     return rows

@@ -541,6 +541,36 @@ def test_evaluate_and_validation_measure_the_same_rollout_error(dataset, tmp_pat
     val = rollout_error(model, load_split(path, "valid")[0], 10_000)
     assert row["mean_position_error_m"] == pytest.approx(val["error_m"], rel=1e-12)
     assert row["relative_error"]["runout"] == pytest.approx(val["runout"], rel=1e-12)
+    assert "relative_error_full" not in row  # not coarse-grained: the data are the run
+
+
+def test_a_coarse_grained_dataset_scores_against_the_run_at_its_resolution(tmp_path):
+    """The metadata keep each MPM run's own deposit; evaluate scores the rollout against it
+    as well as against the coarse-grained data."""
+    from gns.evaluate import evaluate
+    from gns.metrics import Deposit, deposit, relative_errors
+
+    rng = np.random.default_rng(5)
+    runs, raw = [], {}
+    for i, split in enumerate(["train", "train", "valid"]):
+        p = tmp_path / f"r{i}.h5"
+        raw[f"{split}_{i}"] = _fake_run(p, rng, n=200)
+        runs.append((_plan(f"{split}_{i}", split), p))
+    meta = build(runs, tmp_path / "ds", stride=2, connectivity_radius_m=0.058, coarse_grain=2)
+    for sc in meta["scenes"]:
+        run = raw[sc["name"]][::2].astype(np.float32)
+        assert sc["mpm_deposit"] == pytest.approx(deposit(run).as_dict(), rel=1e-12)
+        assert sc["particles"] < 200  # coarse-grained
+    out = tmp_path / "m.pt"
+    train(tmp_path / "ds", out, ModelConfig(latent=16, message_passing=2),
+          TrainConfig(steps=2, batch=2, val_every=2, val_frames=5, ckpt_every=2), device="cpu")
+    model, _ = load_checkpoint(out)
+    (row,) = evaluate(model, tmp_path / "ds", "valid")
+    full = deposit(raw["valid_2"][::2].astype(np.float32))
+    assert row["mpm_full"] == pytest.approx(full.as_dict(), rel=1e-12)
+    assert row["relative_error_full"] == pytest.approx(
+        relative_errors(Deposit(**row["gns"]), full), rel=1e-12)
+    assert row["mpm"] != row["mpm_full"]
 
 
 def test_one_friction_angle_and_a_still_axis_give_finite_features(tmp_path):

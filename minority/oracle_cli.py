@@ -252,8 +252,10 @@ def add_oracle_parser(sub) -> None:
                         description="Roll out every scene of a split from its first MPM "
                                     "frames and compare with the MPM: runout, final height, "
                                     "displacement range (relative errors), mean position "
-                                    "error (m), rollout time (s). JSON to stdout or --out; "
-                                    "exit 1 when a rollout diverges.")
+                                    "error (m), rollout time (s). A coarse-grained dataset's "
+                                    "scenes are also scored against their MPM runs at the runs' "
+                                    "own resolution (relative_error_full). JSON to stdout or "
+                                    "--out; exit 1 when a rollout diverges.")
     q.add_argument("checkpoint", type=Path)
     q.add_argument("dataset", type=Path)
     q.add_argument("--split", default="test", choices=["train", "valid", "test"])

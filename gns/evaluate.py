@@ -22,7 +22,7 @@ def evaluate(model, dataset, split: str = "test", *, device: str = "cpu",
     c1 = model.config.input_velocities + 1
     meta = load_metadata(dataset)
     full = {sc["name"]: Deposit(**sc["mpm_deposit"]) for sc in meta["scenes"]
-            if int(meta.get("coarse_grain", 1)) > 1 and "mpm_deposit" in sc}
+            if "mpm_deposit" in sc} if int(meta.get("coarse_grain", 1)) > 1 else {}
     rows = []
     for traj in load_split(dataset, split):
         if names and traj.name not in names:

@@ -12,7 +12,7 @@ import numpy as np
 
 from gns.export import write_hdf5, write_vtk_series
 from gns.rollout import initial_state, rollout
-from gns.train import load_checkpoint
+from gns.train import coarse_grain_stats, load_checkpoint
 
 # (particle spacing m, frame interval s, C, coarse_grain, coarse_grain_method)
 #   -> [C + 1, n, 3] m or None
@@ -59,9 +59,9 @@ def predict(checkpoint: Path, scene: Path, duration_s: float | None = None,
     c = model.config.input_velocities
     init = initial_state(scene, st["particle_spacing_m"], st["frame_interval_s"], c)
     if callable(history):
+        cg = coarse_grain_stats(st)
         history = history(float(st["particle_spacing_m"]), float(st["frame_interval_s"]), c,
-                          int(st.get("coarse_grain", 1)),
-                          str(st.get("coarse_grain_method", "mean")))
+                          cg["coarse_grain"], cg["coarse_grain_method"])
     if history is not None:
         if history.ndim != 3 or history.shape[0] != c + 1 or history.shape[2] != 3:
             raise ValueError(f"history must be [{c + 1}, n, 3], got {list(history.shape)}")

@@ -68,3 +68,22 @@ def test_the_sample_config_is_the_long_sweep_with_sampled_members(tmp_path):
                    'coarse_grain_method = "median"\n')
     with pytest.raises(SweepError, match="coarse_grain_method 'median'"):
         load_config(bad)
+
+
+def test_the_wide_config_adds_wide_columns_far_from_the_side_walls():
+    """Every scene of the sample sweep stays (same runs); the added ones are wider than any
+    base channel, so their middle is further from a side wall than the model's receptive
+    field (5 message-passing steps of 0.029 m), as in wide_10x."""
+    sample = plan(load_config(CONFIGS / "column_sweep_cg2_sample.toml"))
+    wide_cfg = load_config(CONFIGS / "column_sweep_cg2_wide.toml")
+    wide = plan(wide_cfg)
+    assert wide_cfg.coarse_grain_method == "sample"
+    names = {p.name for p in sample}
+    assert [p for p in wide if p.name in names] == sample
+    added = [p for p in wide if p.name not in names]
+    assert sorted(p.split for p in added) == ["train"] * 12 + ["valid"] * 2
+    base_width = max(p.width_m for p in sample if p.split != "test")
+    assert base_width / 2 < 5 * wide_cfg.connectivity_radius_m
+    for p in added:
+        assert p.width_m / 2 > 5 * wide_cfg.connectivity_radius_m, p
+        assert 800 <= p.particles <= 3000, p

@@ -142,3 +142,24 @@ class GNS(nn.Module):
         acc = self(positions, friction_deg, bounds, senders, receivers) * self.acc_std + self.acc_mean
         vel = positions[:, -1] - positions[:, -2] + acc
         return positions[:, -1] + vel
+
+
+def deepen(model: GNS, stats: dict, message_passing: int) -> GNS:
+    """`model` with message-passing steps appended up to `message_passing`, each new one an
+    identity at first (its edge and node MLPs end in a LayerNorm of zero scale and shift, so
+    their residual updates are zero): the deeper model predicts exactly what `model` does and
+    training can grow its receptive field (M x R) from there."""
+    have = model.config.message_passing
+    if message_passing <= have:
+        raise ValueError(f"deepen to {message_passing} message-passing steps: the model has "
+                         f"{have} already")
+    config = ModelConfig(**{**model.config.to_dict(), "message_passing": message_passing})
+    deeper = GNS(config, stats).to(next(model.parameters()).device)
+    missing, unexpected = deeper.load_state_dict(model.state_dict(), strict=False)
+    assert not unexpected and all(k.startswith("processor.") for k in missing), missing
+    with torch.no_grad():
+        for block in deeper.processor[have:]:
+            for norm in (block.edge.rest[-1], block.node.rest[-1]):
+                norm.weight.zero_()
+                norm.bias.zero_()
+    return deeper

@@ -23,7 +23,7 @@ import torch
 from gns.dataset import load_metadata, load_split
 from gns.events import find_events
 from gns.graph import radius_graph
-from gns.model import GNS, ModelConfig
+from gns.model import GNS, ModelConfig, deepen
 from gns.pushforward import draw_steps, unroll
 
 CHECKPOINT_FORMAT = "minority-gns-checkpoint/1"
@@ -148,16 +148,19 @@ def _batch(windows, device):
 
 def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: TrainConfig, *,
           resume: str | Path | None = None, init: str | Path | None = None,
-          device: str | None = None, log=sys.stderr) -> Path:
+          deepen_to: int | None = None, device: str | None = None, log=sys.stderr) -> Path:
     """Train; write out (the latest checkpoint) and out with suffix .best.pt (best val).
 
     resume: continue a run (weights, optimizer, step, history). init: start from a
     checkpoint's weights, model config and statistics, with a fresh optimizer and schedule
     (fine-tuning, e.g. with another noise level); the statistics stay the checkpoint's so
-    that the weights keep their meaning.
+    that the weights keep their meaning. deepen_to (with init): append identity
+    message-passing steps up to this many (gns.model.deepen).
     """
     if resume and init:
         raise ValueError("give --resume or --init, not both")
+    if deepen_to is not None and not init:
+        raise ValueError("--deepen needs --init (the checkpoint to deepen)")
     if not 0 <= cfg.moving_fraction <= 1:
         raise ValueError(f"moving_fraction {cfg.moving_fraction} must be within [0, 1]")
     from gns.rollout import rollout_error
@@ -181,6 +184,10 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
                 raise ValueError(f"--init: the checkpoint's {key} {stats[key]} is not the "
                                  f"dataset's {meta[key]}")
         stats = {**stats, **coarse_grain_stats(meta)}  # the data's
+        if deepen_to is not None:
+            history[0]["deepened_from"] = model.config.message_passing
+            model = deepen(model, stats, deepen_to)
+            model_config = model.config
     else:
         stats = combined_stats(meta, cfg.noise_std)
         model = GNS(model_config, stats).to(device)

@@ -52,7 +52,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      moving_fraction=args.moving_fraction, seed=args.seed)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
-                    device=args.device)
+                    deepen_to=args.deepen, device=args.device)
     except (DatasetError, OSError, ValueError) as exc:
         print(f"minority oracle train: error: {exc}", file=sys.stderr)
         return 1
@@ -211,6 +211,10 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--init", type=Path, help="fine-tune: start from this checkpoint's weights, "
                                              "model config and statistics with a fresh "
                                              "optimizer and learning-rate schedule")
+    q.add_argument("--deepen", type=int, metavar="M",
+                   help="with --init: append message-passing steps up to M, each an identity "
+                        "at first, so training starts from the checkpoint's predictions and "
+                        "can widen its receptive field (M x the connectivity radius)")
     q.add_argument("--latent", type=int, default=128, help="latent size (default 128)")
     q.add_argument("--mlp-layers", type=int, default=2, help="hidden layers per MLP (default 2)")
     q.add_argument("--message-passing", type=int, default=10, metavar="M",

@@ -12,7 +12,7 @@ import torch
 
 from gns.dataset import build, load_metadata, load_split
 from gns.export import write_vtk_series
-from gns.model import GNS, ModelConfig
+from gns.model import GNS, ModelConfig, deepen
 from gns.rollout import RolloutError, initial_state, rollout
 from gns.sweep import ScenePlan, SweepError, load_config, plan
 from gns.train import TrainConfig, combined_stats, load_checkpoint, ship, train
@@ -471,6 +471,38 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
     p = subprocess.run(run + ["rollout", str(tmp_path / "missing.pt"), "tiny"],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "missing.pt" in p.stderr
+
+
+def test_deepen_appends_identity_steps_that_then_learn():
+    """A deepened model predicts what the original does on both paths, and its new steps
+    get gradients (their zero LayerNorm scale and shift), so training can use them."""
+    torch.manual_seed(3)
+    model = GNS(ModelConfig(latent=16, message_passing=2), _stats()).eval()
+    pos, fr, b, s, r = _inputs(n=120)
+    deeper = deepen(model, _stats(), 5).eval()
+    assert deeper.config.message_passing == 5 and len(deeper.processor) == 5
+    with torch.no_grad():
+        torch.testing.assert_close(deeper(pos, fr, b, s, r), model(pos, fr, b, s, r))
+    out = deeper(pos, fr, b, s, r)  # autograd path
+    torch.testing.assert_close(out.detach(), model(pos, fr, b, s, r).detach())
+    out.square().sum().backward()
+    new_norm = deeper.processor[4].node.rest[-1]
+    assert new_norm.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="has 2 already"):
+        deepen(model, _stats(), 2)
+
+
+def test_train_init_deepen(dataset, tmp_path):
+    path, _, _ = dataset
+    base, deep = tmp_path / "base.pt", tmp_path / "deep.pt"
+    tc = TrainConfig(steps=2, batch=2, val_every=100, val_frames=5, ckpt_every=2)
+    train(path, base, ModelConfig(latent=8, message_passing=1), tc, device="cpu")
+    train(path, deep, ModelConfig(), tc, init=base, deepen_to=3, device="cpu")
+    model, ckpt = load_checkpoint(deep)
+    assert ckpt["model_config"]["message_passing"] == 3 and len(model.processor) == 3
+    assert ckpt["history"][0]["deepened_from"] == 1
+    with pytest.raises(ValueError, match="needs --init"):
+        train(path, deep, ModelConfig(), tc, resume=base, deepen_to=3, device="cpu")
 
 
 def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):

@@ -12,7 +12,7 @@ W_e e + (W_s h)[s] + (W_r h)[r]): no [E, 3L] concatenation is ever formed.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 from torch import nn
@@ -153,8 +153,8 @@ def deepen(model: GNS, stats: dict, message_passing: int) -> GNS:
     if message_passing <= have:
         raise ValueError(f"deepen to {message_passing} message-passing steps: the model has "
                          f"{have} already")
-    config = ModelConfig(**{**model.config.to_dict(), "message_passing": message_passing})
-    deeper = GNS(config, stats).to(next(model.parameters()).device)
+    deeper = GNS(replace(model.config, message_passing=message_passing), stats)
+    deeper = deeper.to(next(model.parameters()).device)
     missing, unexpected = deeper.load_state_dict(model.state_dict(), strict=False)
     assert not unexpected and all(k.startswith("processor.") for k in missing), missing
     with torch.no_grad():

@@ -64,9 +64,12 @@ def subscriber(endpoint: str) -> None:
         out.flush()
 
     def on_chunk(sample: zenoh.Sample) -> None:
-        chunk = decode_as(sample.payload.to_bytes(), Chunk)
+        data = sample.payload.to_bytes()
+        t0 = time.perf_counter()
+        chunk = decode_as(data, Chunk)
+        decode_s = time.perf_counter() - t0
         latency = (time.time_ns() - chunk.sent_ns) * 1e-9
-        out.write(json.dumps({"path": "proto", "latency_s": latency}) + "\n")
+        out.write(json.dumps({"path": "proto", "latency_s": latency, "decode_s": decode_s}) + "\n")
         out.flush()
 
     subs = [session.declare_subscriber(RAW_KEY, on_raw),
@@ -104,9 +107,9 @@ def main() -> None:
             raise SystemExit("bench: the subscriber process never matched")
         time.sleep(0.01)
 
-    def roundtrip(send) -> float:
+    def roundtrip(send) -> dict:
         send()
-        return json.loads(child.stdout.readline())["latency_s"]
+        return json.loads(child.stdout.readline())
 
     with tempfile.TemporaryDirectory() as tmp:
         log = LogWriter(Path(tmp) / "bench.mcap")
@@ -124,10 +127,12 @@ def main() -> None:
                 chunk_pub.put(p)
 
             roundtrip(raw_send), roundtrip(proto_send)  # warm up routes and buffers
-            raw, proto = [], []
+            raw, proto, sub_decode = [], [], []
             for _ in range(reps):  # interleaved so both see the same machine state
-                raw.append(roundtrip(raw_send))
-                proto.append(roundtrip(proto_send))
+                raw.append(roundtrip(raw_send)["latency_s"])
+                line = roundtrip(proto_send)
+                proto.append(line["latency_s"])
+                sub_decode.append(line["decode_s"])
 
             def record(data=frozen):
                 log.write_payload(keys.chunk(RUN, 20, 0), data)
@@ -139,6 +144,7 @@ def main() -> None:
                 "decode_s": round(median_time(lambda d=frozen: decode_as(d, Chunk), reps), 6),
                 "transport_s": round(statistics.median(proto), 6),
                 "raw_zenoh_s": round(statistics.median(raw), 6),
+                "subscriber_decode_s": round(statistics.median(sub_decode), 6),
                 "record_s": round(median_time(record, reps), 6),
             }), flush=True)
         log.close()

@@ -162,6 +162,49 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0 if all("error" not in r for r in rows) else 1
 
 
+def _bands(text: str) -> list[tuple[int, int]]:
+    try:
+        bands = [tuple(int(v) for v in part.split(":")) for part in text.split(",")]
+    except ValueError:
+        bands = []
+    if not bands or any(len(b) != 2 for b in bands):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected F0:F1[,F0:F1...] (frames)")
+    return bands
+
+
+def _cmd_diagnose(args: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from gns.dataset import DatasetError, load_split
+    from gns.diagnose import balance
+    from gns.runtime import tune_allocator
+    from gns.train import load_checkpoint
+
+    tune_allocator()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        model, _ = load_checkpoint(args.checkpoint)
+        trajs = [t for t in load_split(args.dataset, args.split)
+                 if not args.scene or t.name in args.scene]
+        if not trajs:
+            raise ValueError(f"no scene {args.scene} in the {args.split} split")
+        for traj in trajs:
+            for row in balance(model, traj, args.bands):
+                print(json.dumps(row), flush=True)
+                ratio = "-" if row["ratio"] is None else f"{row['ratio']:.2f}"
+                print(f"diagnose: {row['scene']} frames {row['frames'][0]}-"
+                      f"{row['frames'][1] - 1} {row['region']:>22s}: predicted "
+                      f"{row['pred_m']:+.2e} run {row['true_m']:+.2e} ratio {ratio}",
+                      file=sys.stderr, flush=True)
+    except (DatasetError, OSError, ValueError, KeyError) as exc:
+        print(f"minority oracle diagnose: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _cmd_ship(args: argparse.Namespace) -> int:
     from gns.train import ship
 
@@ -267,6 +310,27 @@ def add_oracle_parser(sub) -> None:
     q.add_argument("--out", type=Path, help="JSON file (default: stdout)")
     q.add_argument("--threads", type=int, help="torch CPU threads")
     q.set_defaults(func=_cmd_evaluate)
+
+    q = osub.add_parser("diagnose", help="one-frame predictions against a run, by region",
+                        description="Teacher-forced acceleration balance (gns/diagnose.py): "
+                                    "each frame of a band gets the run's own last frames as "
+                                    "input; the predicted and the run's x accelerations "
+                                    "(m/frame^2) are summed over regions of the column "
+                                    "(depth below the surface, distance to the side walls, "
+                                    "front) and the band. A ratio away from 1 shows where and "
+                                    "when the model adds or removes momentum the run does not. "
+                                    "One JSON line per (scene, band, region) to stdout, a "
+                                    "table to stderr.")
+    q.add_argument("checkpoint", type=Path)
+    q.add_argument("dataset", type=Path)
+    q.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    q.add_argument("--scene", action="append", help="only this scene (repeatable)")
+    q.add_argument("--bands", type=_bands, default=_bands("6:10,10:26,26:46,46:80"),
+                   help="frame bands F0:F1 (last input frames F0..F1-1; frames of the "
+                        "dataset's interval, 0.005 s for the shipped data; default "
+                        "6:10,10:26,26:46,46:80)")
+    q.add_argument("--threads", type=int, help="torch CPU threads")
+    q.set_defaults(func=_cmd_diagnose)
 
     q = osub.add_parser("ship", help="copy a checkpoint without its optimizer state",
                         description="Write the checkpoint the repository ships: weights, "

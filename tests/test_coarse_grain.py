@@ -87,3 +87,23 @@ def test_the_wide_config_adds_wide_columns_far_from_the_side_walls():
     for p in added:
         assert p.width_m / 2 > 5 * wide_cfg.connectivity_radius_m, p
         assert 800 <= p.particles <= 3000, p
+
+
+def test_the_tall_config_adds_wide_columns_taller_than_the_wide_ones():
+    """The wide sweep stays (same runs); the added columns are as far from a side wall in
+    their middle and taller than every wide one, up to wide_10x's height."""
+    wide = plan(load_config(CONFIGS / "column_sweep_cg2_wide.toml"))
+    tall_cfg = load_config(CONFIGS / "column_sweep_cg2_tall.toml")
+    tall = plan(tall_cfg)
+    names = {p.name for p in wide}
+    assert [p for p in tall if p.name in names] == wide
+    added = [p for p in tall if p.name not in names]
+    assert sorted(p.split for p in added) == ["train"] * 10 + ["valid"] * 2
+    sample = {p.name for p in plan(load_config(CONFIGS / "column_sweep_cg2_sample.toml"))}
+    wide_heights = [p.height_m for p in wide if p.name not in sample]
+    train_added = [p for p in added if p.split == "train"]
+    assert max(p.height_m for p in train_added) == 0.352 > max(wide_heights)
+    assert sum(p.height_m > max(wide_heights) for p in train_added) >= 5
+    for p in added:
+        assert p.width_m / 2 > 5 * tall_cfg.connectivity_radius_m, p
+        assert 800 <= p.particles <= 3000, p

@@ -133,21 +133,28 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import json
-
+def _load_for_cpu(args: argparse.Namespace):
+    """(model, checkpoint) of args.checkpoint, with the CPU allocator tuned and
+    args.threads torch threads (raises OSError/ValueError/KeyError as load_checkpoint)."""
     import torch
 
-    from gns.dataset import DatasetError
-    from gns.evaluate import evaluate
     from gns.runtime import tune_allocator
     from gns.train import load_checkpoint
 
     tune_allocator()
     if args.threads:
         torch.set_num_threads(args.threads)
+    return load_checkpoint(args.checkpoint)
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from gns.dataset import DatasetError
+    from gns.evaluate import evaluate
+
     try:
-        model, ckpt = load_checkpoint(args.checkpoint)
+        model, ckpt = _load_for_cpu(args)
         rows = evaluate(model, args.dataset, args.split, names=args.scene or None)
     except (DatasetError, OSError, ValueError, KeyError) as exc:
         print(f"minority oracle evaluate: error: {exc}", file=sys.stderr)
@@ -175,18 +182,11 @@ def _bands(text: str) -> list[tuple[int, int]]:
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     import json
 
-    import torch
-
     from gns.dataset import DatasetError, load_split
     from gns.diagnose import balance
-    from gns.runtime import tune_allocator
-    from gns.train import load_checkpoint
 
-    tune_allocator()
-    if args.threads:
-        torch.set_num_threads(args.threads)
     try:
-        model, _ = load_checkpoint(args.checkpoint)
+        model, _ = _load_for_cpu(args)
         trajs = [t for t in load_split(args.dataset, args.split)
                  if not args.scene or t.name in args.scene]
         if not trajs:

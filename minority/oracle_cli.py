@@ -147,6 +147,14 @@ def _load_for_cpu(args: argparse.Namespace):
     return load_checkpoint(args.checkpoint)
 
 
+def _checkpoint_on_scenes_args(q: argparse.ArgumentParser) -> None:
+    """CHECKPOINT DATASET [--split] [--scene ...], as evaluate and diagnose take them."""
+    q.add_argument("checkpoint", type=Path)
+    q.add_argument("dataset", type=Path)
+    q.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    q.add_argument("--scene", action="append", help="only this scene (repeatable)")
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
@@ -303,10 +311,7 @@ def add_oracle_parser(sub) -> None:
                                     "scenes are also scored against their MPM runs at the runs' "
                                     "own resolution (relative_error_full). JSON to stdout or "
                                     "--out; exit 1 when a rollout diverges.")
-    q.add_argument("checkpoint", type=Path)
-    q.add_argument("dataset", type=Path)
-    q.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    q.add_argument("--scene", action="append", help="only this scene (repeatable)")
+    _checkpoint_on_scenes_args(q)
     q.add_argument("--out", type=Path, help="JSON file (default: stdout)")
     q.add_argument("--threads", type=int, help="torch CPU threads")
     q.set_defaults(func=_cmd_evaluate)
@@ -321,10 +326,7 @@ def add_oracle_parser(sub) -> None:
                                     "when the model adds or removes momentum the run does not. "
                                     "One JSON line per (scene, band, region) to stdout, a "
                                     "table to stderr.")
-    q.add_argument("checkpoint", type=Path)
-    q.add_argument("dataset", type=Path)
-    q.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    q.add_argument("--scene", action="append", help="only this scene (repeatable)")
+    _checkpoint_on_scenes_args(q)
     q.add_argument("--bands", type=_bands, default=_bands("6:10,10:26,26:46,46:80"),
                    help="frame bands F0:F1 (last input frames F0..F1-1; frames of the "
                         "dataset's interval, 0.005 s for the shipped data; default "

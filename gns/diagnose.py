@@ -56,10 +56,9 @@ def predicted_acceleration(model, window: np.ndarray, friction_deg: float,
     x = np.ascontiguousarray(np.transpose(window, (1, 0, 2)), dtype=np.float32)
     s, r = radius_graph(x[:, -1], model.radius)
     with torch.no_grad():
-        a = model(torch.from_numpy(x), torch.full((len(x),), float(friction_deg)),
-                  torch.as_tensor(bounds_m, dtype=torch.float32),
-                  torch.from_numpy(s), torch.from_numpy(r))
-        return (a * model.acc_std + model.acc_mean).numpy()
+        return model.acceleration(torch.from_numpy(x), torch.full((len(x),), float(friction_deg)),
+                                  torch.as_tensor(bounds_m, dtype=torch.float32),
+                                  torch.from_numpy(s), torch.from_numpy(r)).numpy()
 
 
 def balance(model, traj: Trajectory, bands: list[tuple[int, int]]) -> list[dict]:

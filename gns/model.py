@@ -137,9 +137,13 @@ class GNS(nn.Module):
             h, e = block(h, e, senders, receivers)
         return self.decoder(h)
 
+    def acceleration(self, positions, friction_deg, bounds, senders, receivers):
+        """Acceleration [n, 3] of the next frame, m/frame^2 (the forward pass denormalized)."""
+        return self(positions, friction_deg, bounds, senders, receivers) * self.acc_std + self.acc_mean
+
     def next_positions(self, positions, friction_deg, bounds, senders, receivers):
         """Semi-implicit Euler: v' = v + a, x' = x + v' (per frame), [n, 3] m."""
-        acc = self(positions, friction_deg, bounds, senders, receivers) * self.acc_std + self.acc_mean
+        acc = self.acceleration(positions, friction_deg, bounds, senders, receivers)
         vel = positions[:, -1] - positions[:, -2] + acc
         return positions[:, -1] + vel
 

@@ -31,6 +31,12 @@ def _stats():
             "input_velocities": 5}
 
 
+def _accelerating_run(a: float, frames: int = 30) -> np.ndarray:
+    """[frames, n, 3] m: the lattice column, every particle accelerating by a (m/frame^2) in x."""
+    k = np.arange(frames)[:, None, None]
+    return (_column()[None] + 0.5 * a * k ** 2 * np.array([1.0, 0.0, 0.0])).astype(np.float32)
+
+
 def _mean_model():
     """A model whose prediction is exactly the statistics' mean acceleration."""
     model = GNS(ModelConfig(latent=8, message_passing=1), _stats()).eval()
@@ -74,9 +80,7 @@ def test_balance_compares_predicted_with_run_accelerations():
     acceleration of its statistics, so the ratio is that over a, in every region."""
     a = 4e-5  # m/frame^2
     x0 = _column()
-    k = np.arange(30)[:, None, None]
-    pos = x0[None] + 0.5 * a * k ** 2 * np.array([1.0, 0.0, 0.0])
-    traj = Trajectory("const", pos.astype(np.float32), 30.0,
+    traj = Trajectory("const", _accelerating_run(a), 30.0,
                       np.array(_stats()["bounds_m"], np.float64))
     rows = balance(_mean_model(), traj, [(5, 10), (10, 28)])
     assert {r["frames"][0] for r in rows} == {5, 10}
@@ -103,15 +107,12 @@ def test_cli_diagnose(tmp_path):
                 "state_dict": _mean_model().state_dict(), "step": 0}, tmp_path / "m.pt")
     import h5py
 
-    a, x0 = 4e-5, _column()
-    k = np.arange(30)[:, None, None]
-    pos = x0[None] + 0.5 * a * k ** 2 * np.array([1.0, 0.0, 0.0])
     ds = tmp_path / "ds"
     ds.mkdir()
     (ds / "metadata.json").write_text(json.dumps({"format": "minority-gns-dataset/1"}))
     with h5py.File(ds / "test.h5", "w") as f:
         g = f.create_group("const")
-        g["positions"] = pos.astype(np.float32)
+        g["positions"] = _accelerating_run(4e-5)
         g.attrs["friction_angle_deg"] = 30.0
         g.attrs["bounds_m"] = np.array(_stats()["bounds_m"], np.float64)
     cmd = [sys.executable, "-m", "minority", "oracle", "diagnose", str(tmp_path / "m.pt"),

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -270,13 +270,18 @@ class LogDamagedWarning(RuntimeWarning):
     """read_log stopped at a damaged record inside a log (not at a cut-short tail)."""
 
 
+class LogTruncatedWarning(RuntimeWarning):
+    """read_log reached the end of a log that has no MCAP footer: its writer was killed (or
+    its disk filled) and the messages after its last complete chunk are not in the file."""
+
+
 def read_log(path: str | Path, topics: Iterable[str] | None = None,
              start_ns: int | None = None, end_ns: int | None = None) -> Iterator[LogRecord]:
     """Iterate stored messages in file order, filtered by topic (exact or glob, e.g.
     `minority/*/chunk`) and log time in [start_ns, end_ns). A file cut short (a killed
-    recorder) yields every message of its completed chunks, then stops; a damaged chunk
-    inside the file (its CRC does not match) stops it too, with a LogDamagedWarning. A file
-    that is not MCAP raises ProtocolError."""
+    recorder) yields every message of its completed chunks, then stops with a
+    LogTruncatedWarning; a damaged chunk inside the file (its CRC does not match) stops it
+    too, with a LogDamagedWarning. A file that is not MCAP raises ProtocolError."""
     patterns = list(topics) if topics is not None else None
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -291,6 +296,9 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
             try:
                 record = next(records)
             except StopIteration:
+                warnings.warn(f"{path}: the log ends without its MCAP footer (its writer was "
+                              "stopped); every message of its complete chunks was read",
+                              LogTruncatedWarning, stacklevel=2)
                 return
             except Exception as exc:  # noqa: BLE001 - mcap, zstd and lz4 raise their own types
                 pos, size = f.tell(), os.fstat(f.fileno()).st_size
@@ -298,7 +306,13 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
                     warnings.warn(f"{path}: unreadable record before byte {pos} of {size} "
                                   f"({exc}); the rest of the file is not read",
                                   LogDamagedWarning, stacklevel=2)
-                return  # a truncated tail: what came before is complete
+                else:
+                    warnings.warn(f"{path}: the log is cut short at byte {size} (its writer "
+                                  "was killed); every message of its complete chunks was read",
+                                  LogTruncatedWarning, stacklevel=2)
+                return
+            if isinstance(record, Footer):
+                return
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):

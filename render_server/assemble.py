@@ -3,13 +3,18 @@
 A step is complete when every rank named in its chunk headers has sent it, when the missing
 ranks have ended or died, or `timeout_s` after its first chunk (then flagged incomplete).
 It carries the fields every received chunk holds with one dtype and shape per particle.
-At most `max_pending` steps are held; past that, the oldest is released as incomplete.
-Duplicates and chunks of steps already released are counted and dropped.
+At most `max_pending` steps and `max_pending_bytes` of their chunks are held; past that,
+the oldest is released as incomplete. The bounds are generous because after a pause (a
+stopped or slow server) each rank's backlog arrives one rank after the other: every step
+must wait for its last rank's chunk.
+Duplicates and chunks of steps already released are counted and dropped. "Released" is
+known exactly for the last RELEASED_WINDOW steps; a chunk older than all of those is late
+too. One chunk with an absurd step number therefore cannot hide the steps that follow it.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,7 +22,9 @@ import numpy as np
 from protocol.messages import Chunk
 
 DEFAULT_TIMEOUT_S = 5.0
-DEFAULT_MAX_PENDING = 8
+DEFAULT_MAX_PENDING = 256  # steps
+DEFAULT_MAX_PENDING_BYTES = 1 << 30  # chunk payload bytes held in pending steps
+RELEASED_WINDOW = 1024  # released step numbers remembered exactly
 
 
 @dataclass
@@ -60,18 +67,27 @@ class AssemblyStats:
 
 
 class StepAssembler:
-    def __init__(self, timeout_s: float = DEFAULT_TIMEOUT_S, max_pending: int = DEFAULT_MAX_PENDING):
+    def __init__(self, timeout_s: float = DEFAULT_TIMEOUT_S, max_pending: int = DEFAULT_MAX_PENDING,
+                 max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
         self.timeout_ns = int(timeout_s * 1e9)
         self.max_pending = max_pending
+        self.max_pending_bytes = max_pending_bytes
         self.pending: OrderedDict[int, PendingStep] = OrderedDict()
-        self.released_up_to = -1  # highest step released
+        self.pending_bytes = 0
+        self._released: deque[int] = deque()  # the last RELEASED_WINDOW released steps
+        self._released_set: set[int] = set()
+        self._floor = -1  # steps below the oldest remembered release are late
         self.gone: set[int] = set()  # ranks that ended or died
         self.stats = AssemblyStats()
+
+    def is_late(self, step: int) -> bool:
+        """Whether chunks of `step` come after the step was released."""
+        return step not in self.pending and (step in self._released_set or step < self._floor)
 
     def add(self, chunk: Chunk, recv_ns: int, nbytes: int) -> list[AssembledStep]:
         """Take one chunk; returns the steps it completes (or evicts), oldest first."""
         self.stats.chunks += 1
-        if chunk.step <= self.released_up_to and chunk.step not in self.pending:
+        if self.is_late(chunk.step):
             self.stats.late += 1
             return []
         p = self.pending.get(chunk.step)
@@ -87,8 +103,10 @@ class StepAssembler:
             p.first_sent_ns = min(p.first_sent_ns or chunk.sent_ns, chunk.sent_ns)
         p.last_ns = recv_ns
         p.nbytes += nbytes
+        self.pending_bytes += nbytes
         done = self._release_complete(recv_ns)
-        while len(self.pending) > self.max_pending:
+        while len(self.pending) > self.max_pending or (
+                len(self.pending) > 1 and self.pending_bytes > self.max_pending_bytes):
             step = next(iter(self.pending))
             self.stats.evicted += 1
             done.append(self._release(step, recv_ns, incomplete=True))
@@ -114,7 +132,12 @@ class StepAssembler:
                 for s, p in sorted(self.pending.items())]
 
     def _complete(self, p: PendingStep) -> bool:
-        return all(r in p.chunks or r in self.gone for r in range(p.ranks))
+        """Every rank below p.ranks sent its chunk or is gone (O(chunks + gone), not
+        O(p.ranks): a header may name up to MAX_RANKS ranks)."""
+        if len(p.chunks) >= p.ranks:
+            return True
+        gone = sum(1 for r in self.gone if r < p.ranks and r not in p.chunks)
+        return len(p.chunks) + gone >= p.ranks
 
     def _release_complete(self, now_ns: int) -> list[AssembledStep]:
         return [self._release(s, now_ns, incomplete=False)
@@ -122,7 +145,12 @@ class StepAssembler:
 
     def _release(self, step: int, now_ns: int, incomplete: bool) -> AssembledStep:
         p = self.pending.pop(step)
-        self.released_up_to = max(self.released_up_to, step)
+        self.pending_bytes -= p.nbytes
+        self._released.append(step)
+        self._released_set.add(step)
+        if len(self._released) > RELEASED_WINDOW:
+            self._released_set.discard(self._released.popleft())
+            self._floor = min(self._released_set)
         chunks = [p.chunks[r] for r in sorted(p.chunks)]
         names = set(chunks[0].fields)
         for c in chunks[1:]:

@@ -101,3 +101,43 @@ def test_fields_whose_ranks_disagree_on_shape_or_dtype_are_left_out():
     (done,) = a.add(c1, 0, 1)
     assert "displacement" not in done.fields and "material" not in done.fields
     assert done.positions.shape == (20, 3) and a.stats.mismatched_fields == 2
+
+
+def test_an_absurd_step_does_not_hide_the_steps_after_it():
+    a = StepAssembler(timeout_s=1.0)
+    a.add(chunk(2**40, 0, ranks=1), 0, 1)  # released at once (one rank)
+    for step in (0, 1, 2):
+        (done,) = a.add(chunk(step, 0, ranks=1), MS, 1)
+        assert done.step == step and not done.incomplete
+    assert a.stats.late == 0
+    assert a.add(chunk(1, 0, ranks=1), MS, 1) == [] and a.stats.late == 1  # released: late
+
+
+def test_steps_older_than_the_remembered_releases_are_late():
+    from render_server.assemble import RELEASED_WINDOW
+
+    a = StepAssembler()
+    for step in range(10, 10 + RELEASED_WINDOW + 5):
+        a.add(chunk(step, 0, ranks=1), 0, 1)
+    assert a.add(chunk(3, 0, ranks=1), 0, 1) == [] and a.stats.late == 1
+    assert a.is_late(14) and not a.is_late(10 + RELEASED_WINDOW + 5)
+
+
+def test_a_backlog_arriving_one_rank_after_the_other_assembles_every_step():
+    """After a pause each rank's backlog arrives separately: every step waits for its last
+    rank instead of being released with one rank's particles."""
+    a = StepAssembler()
+    steps = range(0, 550, 10)  # 55 steps
+    assert all(a.add(chunk(s, 0, ranks=2), 0, 1000) == [] for s in steps)
+    done = [d for s in steps for d in a.add(chunk(s, 1, ranks=2), MS, 1000)]
+    assert [d.step for d in done] == list(steps)
+    assert not any(d.incomplete for d in done) and a.stats.evicted == 0
+
+
+def test_pending_bytes_are_bounded():
+    a = StepAssembler(max_pending_bytes=2500)
+    a.add(chunk(1, 0), 0, 1000)
+    a.add(chunk(2, 0), 0, 1000)
+    (evicted,) = a.add(chunk(3, 0), 0, 1000)
+    assert evicted.step == 1 and evicted.incomplete and a.pending_bytes == 2000
+

@@ -8,12 +8,16 @@ from typing import Any
 
 from protocol.errors import ProtocolError
 
-NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # safe inside one key-expression chunk
+# Safe inside one key-expression chunk and as one path component: 1-64 characters, the
+# first a letter, digit or underscore (so never ".", ".." or an option-like "-x"); \Z, not $,
+# so a trailing newline does not match.
+NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}\Z")
 
 
 def name(value: Any, where: str, error: type[ProtocolError] = ProtocolError) -> str:
     if not isinstance(value, str) or not NAME_RE.match(value):
-        raise error(f"{where}: expected 1-64 characters of [A-Za-z0-9_.-], got {value!r}")
+        raise error(f"{where}: expected 1-64 characters of [A-Za-z0-9_.-] starting with a "
+                    f"letter, digit or underscore, got {value!r:.80}")
     return value
 
 

@@ -47,14 +47,30 @@ _BY_SCHEMA = {"minority.Chunk": Chunk, "minority.Spec": Spec, "foxglove.Compress
               "minority.Timing": Timing, "minority.Event": Event, "minority.Stats": Stats}
 
 
+MAX_TIME_NS = (1 << 63) - 1  # log and publish times are u64 in MCAP; ours are non-negative i64
+
+
+def free_log_path(path: str | Path) -> Path:
+    """`path` if no file is there, else the first free `{stem}.{k}{suffix}` (k = 1, 2, ...):
+    a log is never overwritten."""
+    path = Path(path)
+    k = 0
+    while True:
+        candidate = path if k == 0 else path.with_name(f"{path.stem}.{k}{path.suffix}")
+        if not candidate.exists():
+            return candidate
+        k += 1
+
+
 class LogWriter:
-    """Writes messages to an MCAP file with schemas and channel metadata."""
+    """Writes messages to an MCAP file with schemas and channel metadata. The file must not
+    exist (FileExistsError otherwise; see free_log_path) unless `overwrite` is set."""
 
     def __init__(self, path: str | Path, *, compression: CompressionType = CompressionType.NONE,
                  flush_interval_s: float = 0.5, chunk_bytes: int = 4 << 20,
-                 metadata: dict[str, str] | None = None):
+                 metadata: dict[str, str] | None = None, overwrite: bool = False):
         self.path = Path(path)
-        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        self._file = open(self.path, "wb" if overwrite else "xb")  # noqa: SIM115 (see close())
         self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=compression)
         self._writer.start(profile=PROFILE, library="minority")
         self._writer.add_metadata("minority", {"wire_format": WIRE_ENCODING,
@@ -67,6 +83,8 @@ class LogWriter:
         self._lock = threading.Lock()
         self.written = 0
         self.rejected = 0
+        self.failure = ""  # why the file ended early (a failed write); "" while writing
+        self.unwritten = 0  # messages not written: the failed one and all after it
 
     def _channel(self, topic: str, schema_name: str, encoding: str, meta: dict[str, str]) -> int:
         if topic not in self._channels:
@@ -81,11 +99,15 @@ class LogWriter:
                 topic, encoding, self._schemas[schema_name], meta)
         return self._channels[topic]
 
-    def write_payload(self, key: str, payload: bytes, log_ns: int | None = None) -> str:
-        """Validate and log one received payload; returns the topic it went to."""
+    def write_payload(self, key: str, payload: bytes, log_ns: int | None = None,
+                      message=None) -> str:
+        """Validate and log one received payload (`message`: its decoded form, when the
+        caller has decoded it already); returns the topic it went to."""
         log_ns = time.time_ns() if log_ns is None else log_ns
+        if not 0 <= log_ns <= MAX_TIME_NS:
+            raise ValueError(f"log time {log_ns} ns is outside [0, {MAX_TIME_NS}]")
         try:
-            topic, schema, encoding, data, sent_ns, meta = self._prepare(key, payload)
+            topic, schema, encoding, data, sent_ns, meta = self._prepare(key, payload, message)
         except ProtocolError as exc:
             return self._reject(key, payload, str(exc), log_ns)
         with self._lock:
@@ -99,12 +121,15 @@ class LogWriter:
         """Log a message object (in-process use); `key` defaults to its canonical key."""
         return self.write_payload(key or default_key(message), bytes(message.encode()), log_ns)
 
-    def _prepare(self, key: str, payload: bytes):
+    def _prepare(self, key: str, payload: bytes, message=None):
         parsed = keys.parse(key)
         if parsed is None or parsed.topic not in _BY_TOPIC:
             raise ProtocolError(f"key {key!r:.120} is not a minority message key")
         cls = _BY_TOPIC[parsed.topic]
-        message = decode_as(payload, cls)
+        if type(message) is not cls:
+            message = decode_as(payload, cls)
+        if not 0 <= message.sent_ns <= MAX_TIME_NS:  # decoders refuse these; never trust it
+            raise ProtocolError(f"sent time {message.sent_ns} ns is outside [0, {MAX_TIME_NS}]")
         if message.run != parsed.run:
             raise ProtocolError(f"payload run {message.run!r} does not match key run {parsed.run!r}")
         meta = {"run": parsed.run, "kind": parsed.topic, "key_expr": keys.everything(parsed.run)}
@@ -147,6 +172,35 @@ class LogWriter:
                 self._writer.finish()
                 self._file.close()
 
+    def keep(self, write, *args) -> bool:
+        """Call one write method (write_payload, write, flush) for a long-running logger: the
+        first failure (a full disk; or any unexpected error, after which the writer's state
+        is unknown) ends the file at its last complete chunk, says so once on stderr, and
+        every later message is counted in `unwritten`. Returns whether it was written."""
+        if self.failure:
+            self.unwritten += write != self.flush
+            return False
+        try:
+            write(*args)
+            return True
+        except Exception as exc:  # noqa: BLE001 - the logger outlives any one message
+            self.failure = f"{type(exc).__name__}: {exc}"
+            self.unwritten += write != self.flush
+            print(f"minority: cannot write {self.path}: {self.failure}; the log ends here (its "
+                  "complete chunks stay readable), later messages are counted as not written",
+                  file=sys.stderr, flush=True)
+            return False
+
+    def finish(self) -> None:
+        """Close: with the MCAP summary, or as it is after a failure (see abandon)."""
+        if not self.failure:
+            try:
+                self.close()
+                return
+            except Exception as exc:  # noqa: BLE001
+                self.failure = f"{type(exc).__name__}: {exc}"
+        self.abandon()
+
     def abandon(self) -> None:
         """Close the file as it is, without the MCAP summary (after a failed write: the file
         reads like a cut-short one, its complete chunks and nothing after them)."""
@@ -185,7 +239,6 @@ class Recorder:
         self.writer = LogWriter(path, metadata={"run": run}, **writer_options)
         self._inbox = Inbox(session, keys.everything(run), capacity)
         self._stop = threading.Event()
-        self.write_errors = 0  # messages not written after (and with) the first failed write
         self._thread = threading.Thread(target=self._loop, name="minority-recorder", daemon=True)
         self._thread.start()
 
@@ -201,22 +254,17 @@ class Recorder:
     def written(self) -> int:
         return self.writer.written + self.writer.rejected
 
+    @property
+    def write_errors(self) -> int:
+        return self.writer.unwritten
+
     def _loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=0.1)
-            if self.write_errors:  # the file ends at its first failed write
-                self.write_errors += item is not None
-                continue
-            try:
-                if item is None:
-                    self.writer.flush()
-                else:
-                    self.writer.write_payload(item.key, item.payload, item.recv_ns)
-            except OSError as exc:  # e.g. a full disk: say it, count what is not written
-                self.write_errors += 1
-                print(f"minority record: cannot write {self.writer.path}: {exc}; the log ends "
-                      "here (its complete chunks stay readable), later messages are counted "
-                      "as not written", file=sys.stderr, flush=True)
+            if item is None:
+                self.writer.keep(self.writer.flush)
+            else:
+                self.writer.keep(self.writer.write_payload, item.key, item.payload, item.recv_ns)
 
     def close(self) -> None:
         """Stop receiving, write what is queued, finish the file."""
@@ -224,21 +272,8 @@ class Recorder:
         self._stop.set()
         self._thread.join()
         while (item := self._inbox.get(timeout=0)) is not None:
-            if self.write_errors:
-                self.write_errors += 1
-                continue
-            try:
-                self.writer.write_payload(item.key, item.payload, item.recv_ns)
-            except OSError:
-                self.write_errors += 1
-        if self.write_errors:
-            self.writer.abandon()
-            return
-        try:
-            self.writer.close()
-        except OSError:
-            self.write_errors += 1
-            self.writer.abandon()
+            self.writer.keep(self.writer.write_payload, item.key, item.payload, item.recv_ns)
+        self.writer.finish()
 
 
 @dataclass(frozen=True)

@@ -218,6 +218,8 @@ def _prefix(view: np.ndarray) -> tuple[MessageKind, int, int, int]:
         raise ProtocolError(f"unknown message kind {kind}")
     if res1 or res2:
         raise ProtocolError("reserved prefix fields are not zero")
+    if sent_ns < 0:
+        raise ProtocolError(f"sent time {sent_ns} ns is negative")
     if total != len(view):
         raise ProtocolError(f"declared length {total} bytes but {len(view)} bytes received")
     if hlen > MAX_HEADER_BYTES or PREFIX_SIZE + hlen > len(view):

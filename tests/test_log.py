@@ -137,3 +137,37 @@ def test_a_damaged_chunk_inside_the_log_is_said(tmp_path, compression):
     with pytest.warns(LogDamagedWarning, match="unreadable record"):
         records = list(read_log(path))
     assert 0 < len(records) < 10 and [r.data for r in records] == payloads[:len(records)]
+
+
+def test_a_log_is_never_overwritten(tmp_path):
+    from protocol.log import free_log_path
+
+    path = tmp_path / "run.mcap"
+    with LogWriter(path) as log:
+        log.write(make_chunk(n=5))
+    size = path.stat().st_size
+    with pytest.raises(FileExistsError):
+        LogWriter(path)
+    assert path.stat().st_size == size
+    assert free_log_path(path) == tmp_path / "run.1.mcap"
+    (tmp_path / "run.1.mcap").touch()
+    assert free_log_path(path) == tmp_path / "run.2.mcap"
+
+
+def test_times_outside_mcap_range_never_reach_the_writer(tmp_path):
+    """A message whose decoded time cannot be stored goes to the rejected topic; a log time
+    outside the range is refused before anything is written, and the file stays whole."""
+    path = tmp_path / "t.mcap"
+    chunk = make_chunk(n=5)
+    with LogWriter(path) as log:
+        with pytest.raises(ValueError, match="log time"):
+            log.write(chunk, log_ns=-5)
+        bad = make_chunk(n=5)
+        bad.sent_ns = -7
+        assert log.write_payload("minority/test-run/chunk/0/0", b"", 1, message=bad) \
+            == REJECTED_TOPIC
+        log.write(chunk, log_ns=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # complete, undamaged
+        records = list(read_log(path))
+    assert [r.topic for r in records] == [REJECTED_TOPIC, "minority/test-run/chunk"]

@@ -3,6 +3,7 @@ a recorder killed with SIGKILL leaves a readable file. Waits are on message coun
 
 import os
 import signal
+import struct
 import subprocess
 import sys
 import threading
@@ -153,3 +154,24 @@ def test_recorder_survives_a_write_error(server, client_factory, tmp_path):
         warnings.simplefilter("error", LogDamagedWarning)  # it ends where writing stopped
         with pytest.warns(LogTruncatedWarning):
             assert len(list(read_log(tmp_path / "full.mcap"))) <= 1
+
+
+def test_recorder_survives_a_negative_sent_time(server, client_factory, tmp_path):
+    """A timing message stamped before the epoch is rejected with its reason; the recorder
+    writes on and its file is complete."""
+    from protocol import Timing
+
+    sender, observer = client_factory(), client_factory()
+    recorder = Recorder(observer, tmp_path / "neg.mcap", run=RUN, flush_interval_s=0.1)
+    probes = handshake(sender, [recorder])
+    payload = Timing(RUN, 1, "side").encode()
+    struct.pack_into("<q", payload, 24, -(2**62))
+    sender.put(keys.timing(RUN), bytes(payload))  # raw: session.put would restamp it
+    put(sender, keys.chunk(RUN, 2, 0), make_chunk(n=10, step=2, run=RUN).encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: recorder.received == probes + 2)
+    recorder.close()
+    assert recorder.write_errors == 0 and recorder.written == probes + 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        topics = [r.topic for r in read_log(tmp_path / "neg.mcap")]
+    assert topics[-2:] == ["minority/_rejected", f"minority/{RUN}/chunk"]

@@ -125,3 +125,32 @@ def test_an_empty_array_with_absurd_dimensions_is_a_protocol_error():
     bad = payload.replace(shape, b"[0,34359738368,99999999]")
     with pytest.raises(ProtocolError, match="array 'x': shape"):
         decode(bad)
+
+
+@pytest.mark.parametrize("message", sample_messages(), ids=lambda m: type(m).__name__)
+def test_a_negative_sent_time_is_refused(message):
+    """MCAP stores times as u64: a negative stamp must never get past the decoder."""
+    payload = bytearray(message.encode())
+    struct.pack_into("<q", payload, 24, -1)
+    with pytest.raises(ProtocolError, match="negative"):
+        decode_message(bytes(payload))
+
+
+@pytest.mark.parametrize("name", [".", "..", "a\n", "-x", ".hidden", "a/b", "", "x" * 65])
+def test_names_that_are_not_one_safe_path_component_are_refused(name):
+    from protocol import check, keys
+
+    with pytest.raises(ProtocolError):
+        check.name(name, "run")
+    assert keys.parse(f"minority/{name}/event") is None
+    event = Event("r", "error").to_json() | {"run": name}
+    with pytest.raises(ProtocolError):
+        Event.from_json(event)
+    chunk = next(m for m in sample_messages() if isinstance(m, Chunk))
+    payload = chunk.encode()
+    hlen = struct.unpack_from("<I", payload, 8)[0]
+    header = json.loads(payload[PREFIX_SIZE:PREFIX_SIZE + hlen])
+    header["meta"]["run"] = name
+    with pytest.raises(ProtocolError):
+        decode_as(_rebuild(header, bytes(payload[_aligned(PREFIX_SIZE + hlen):]), 1,
+                           random.Random(0)), Chunk)

@@ -167,14 +167,14 @@ class Received:
 
 
 class Inbox:
-    """A bounded queue of received samples; when full (`capacity` messages or `max_bytes`
-    of payload), new samples are dropped and counted.
+    """A bounded queue of the samples received on one key expression (or several); when full
+    (`capacity` messages or `max_bytes` of payload), new samples are dropped and counted.
 
     The zenoh callback only copies the payload and enqueues, so a slow consumer never
     stalls zenoh's threads and memory stays bounded.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, capacity: int = 256,
+    def __init__(self, session: zenoh.Session, key: str | list[str], capacity: int = 256,
                  max_bytes: int | None = None):
         self.dropped = 0
         self.received = 0
@@ -182,7 +182,8 @@ class Inbox:
         self._queued_bytes = 0
         self._queue: queue.Queue[Received] = queue.Queue(maxsize=capacity)
         self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(key, self._on_sample)
+        self._subs = [session.declare_subscriber(k, self._on_sample)
+                      for k in ([key] if isinstance(key, str) else key)]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         size = len(sample.payload)
@@ -210,4 +211,5 @@ class Inbox:
         return item
 
     def close(self) -> None:
-        self._sub.undeclare()
+        for sub in self._subs:
+            sub.undeclare()

@@ -1,19 +1,25 @@
 """The render server daemon: serve the spec, receive chunks, assemble steps, render the
 scheduled views (render_server.frames, shared with `minority replay`), write PNG frames,
-publish frames and timing, record everything.
+publish frames and timing, log every message of each run (render_server.runs).
 
-Threads: zenoh's callbacks only enqueue (bounded inbox); a receive thread decodes chunks and
-assembles steps; a render thread takes the newest assembled step (a step replaced before it
-was rendered is counted as skipped), so the simulation is never blocked and memory stays
-bounded whatever the senders do.
+Threads: zenoh's callbacks only enqueue (bounded inboxes); a receive thread decodes chunks,
+rank events and stats, assembles steps and decides which run of the run id a message
+belongs to; a render thread takes the newest assembled step (a step replaced before it was
+rendered is counted as skipped); a log thread writes each run's MCAP file. The simulation
+is never blocked and memory stays bounded whatever the senders do.
+
+Only the server publishes frames, timing and server events (rank -1) of its runs: the same
+messages from anyone else are not logged.
 """
 
 from __future__ import annotations
 
+import queue
+import struct
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,48 +27,39 @@ import zenoh
 
 from protocol import keys
 from protocol.errors import ProtocolError
-from protocol.log import Recorder
-from protocol.messages import Chunk, Event, EventKind, Frame, Timing, decode_as
+from protocol.messages import MAX_RANKS, Chunk, Event, EventKind, Frame, Stats, Timing, decode_as
 from protocol.session import CONTROL_QOS, FRAME_QOS, Inbox, put
 from protocol.spec import Spec
+from protocol.wire import SENT_NS_OFFSET
 from render_server.assemble import (
     DEFAULT_MAX_PENDING,
+    DEFAULT_MAX_PENDING_BYTES,
     DEFAULT_TIMEOUT_S,
     AssembledStep,
     StepAssembler,
 )
 from render_server.frames import render_views
 from render_server.render import Canvas, prepare, render
+from render_server.runs import LogQueue, RunInstance, ServerStats, instance_paths, open_writer
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 TOKEN_GRACE_S = 1.0  # a rank whose token vanished without a done event: gone this much later
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one error event per interval (counts in between)
+SIDE_CAPACITY = 1024  # rank events and stats queued at most (the rest dropped, counted)
 
 
 @dataclass
 class ServerOptions:
     spec: Spec
     out_dir: Path  # frames go to out_dir/{run}/{view}/{step:06d}.png
-    record: Path | None = None  # MCAP log of every message of the run
+    record: Path | None = None  # MCAP log of the first run; later runs: {stem}.1{suffix}, ...
     timeout_s: float = DEFAULT_TIMEOUT_S
     max_pending: int = DEFAULT_MAX_PENDING
+    max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES
     inbox_capacity: int = 256  # chunks
     inbox_bytes: int = 1 << 30  # and at most this many bytes of them queued
     shadows: bool = False
     write_png: bool = True
-
-
-@dataclass
-class ServerStats:
-    chunks: int = 0
-    rejected: int = 0  # malformed chunks
-    steps_rendered: int = 0
-    steps_skipped: int = 0  # replaced by a newer step before rendering
-    frames: int = 0
-    view_errors: int = 0  # views that could not be rendered (e.g. a missing field)
-    write_errors: int = 0  # frames rendered and published whose PNG could not be written
-    last_error: str = ""
-    errors_unreported: int = field(default=0, repr=False)
 
 
 class LatestStep:
@@ -74,12 +71,12 @@ class LatestStep:
         self.replaced = 0
 
     def put(self, step: AssembledStep) -> None:
-        """Offer a step; an older step than the one waiting is the one dropped (two threads
-        release steps, so they may arrive out of order)."""
+        """Offer a step; an older step than the one waiting is the one dropped (steps may be
+        released out of order; a later run of the run id is newer than every earlier one)."""
         with self._cond:
             if self._step is not None:
                 self.replaced += 1
-                if self._step.step > step.step:
+                if (self._step.instance, self._step.step) > (step.instance, step.step):
                     return
             self._step = step
             self._cond.notify()
@@ -107,143 +104,216 @@ def warm_up() -> None:
 
 
 class RenderServer:
+    """Serves one run id: its spec, and each run of it in turn (a RunInstance: the first
+    opens at start, the next with the first chunk or rank token after the last has ended)."""
+
     def __init__(self, session: zenoh.Session, options: ServerOptions):
         self.session = session
         self.options = options
         self.spec = options.spec
         self.run = options.spec.run
-        self.stats = ServerStats()
-        self._lock = threading.Lock()
-        self._assembler = StepAssembler(options.timeout_s, options.max_pending)
-        self._latest = LatestStep()
-        self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
         self._stop = threading.Event()
         self._last_error_event = 0.0
-        # the run's end: every rank said done (event or token gone), then all drained
+        self._errors_unreported = 0
+        self._latest = LatestStep()
+        self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
+        self._tokens: queue.SimpleQueue = queue.SimpleQueue()  # (rank, alive, monotonic ns)
+        self._instances: dict[int, RunInstance] = {}  # not yet finished, by seq
+        self._instance: RunInstance | None = None  # the newest
+        self._last: RunInstance | None = None  # the newest, kept after it finished
+        self._seq = 0
+        self.between_runs = 0  # rank messages that came when no run was open: not logged
+        # set while no run is open (the last one ended: every rank done, last step rendered)
         self.finished = threading.Event()
-        self._ranks_expected = 0  # from the chunks' rank count and the live tokens
-        self._ranks_gone: set[int] = set()
-        # a done event carries the rank's chunk count: the rank is gone once they all came
-        # (the event travels at a higher priority than the chunks and may overtake them)
-        self._rank_chunks_sent: dict[int, int] = {}
-        self._rank_chunks_received: dict[int, int] = {}
-        self._token_gone_ns: dict[int, int] = {}
-        self._drained = threading.Event()  # nothing more to assemble; set after the last put
         culled = [v.name for v in self.spec.views if v.occlusion_cull]
         if options.shadows and culled:
             print(f"minority serve: views {', '.join(culled)} have occlusion_cull: the sim "
                   "leaves hidden particles out, so their shadows are missing", file=sys.stderr,
                   flush=True)
         warm_up()  # compile the kernels now, not on the first step
-        self.recorder = Recorder(session, options.record, run=self.run) if options.record else None
+        self._log = LogQueue() if options.record else None
+        self._open_instance()
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
                             options.inbox_bytes)
+        self._side = Inbox(session, [keys.event(self.run), keys.stats(self.run)], SIDE_CAPACITY)
         self._queryable = session.declare_queryable(keys.spec(self.run), self._on_query)
-        self._events = session.declare_subscriber(keys.event(self.run), self._on_event)
-        self._tokens = session.liveliness().declare_subscriber(keys.rank_tokens(self.run),
-                                                               self._on_token, history=True)
+        self._token_sub = session.liveliness().declare_subscriber(
+            keys.rank_tokens(self.run), self._on_token, history=True)
         self._threads = [threading.Thread(target=self._receive_loop, name="minority-receive"),
                          threading.Thread(target=self._render_loop, name="minority-render")]
         for t in self._threads:
             t.start()
         put(session, keys.spec(self.run), self.spec.encode(), CONTROL_QOS)
-        self._event(EventKind.RUN_START, f"render server up, {len(self.spec.views)} views")
+
+    @property
+    def stats(self) -> ServerStats:
+        """The counters of the open run (or of the last one, once it ended)."""
+        return self._last.stats
 
     # --- zenoh callbacks (enqueue or small work only) ---------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
         query.reply(keys.spec(self.run), bytes(self.spec.encode()))
 
-    def _on_event(self, sample: zenoh.Sample) -> None:
-        try:
-            event = decode_as(sample.payload.to_bytes(), Event)
-        except ProtocolError as exc:
-            self._error(f"malformed event: {exc}")
-            return
-        if event.kind == EventKind.RANK_DONE and event.rank >= 0:
-            sent = event.detail.get("sent")
-            if type(sent) is int and sent >= 0:
-                with self._lock:
-                    self._rank_chunks_sent[event.rank] = sent
-                    waiting = self._rank_chunks_received.get(event.rank, 0) < sent
-                if waiting:
-                    return  # the receive loop marks it gone when its last chunk is in
-            self._rank_gone(event.rank)
-
     def _on_token(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse(str(sample.key_expr))
-        if not (parsed and parsed.rest and parsed.rest[0].isdigit()):
-            return
-        rank = int(parsed.rest[0])
-        if sample.kind == zenoh.SampleKind.DELETE:  # died, or ended (its done event says)
-            with self._lock:
-                self._token_gone_ns.setdefault(rank, time.monotonic_ns())
-        else:
-            with self._lock:
-                self._ranks_expected = max(self._ranks_expected, rank + 1)
+        if parsed and parsed.rest and parsed.rest[0].isdigit() and int(parsed.rest[0]) < MAX_RANKS:
+            self._tokens.put((int(parsed.rest[0]), sample.kind != zenoh.SampleKind.DELETE,
+                              time.monotonic_ns()))
 
-    def _rank_gone(self, rank: int) -> None:
-        with self._lock:
-            for step in self._gone_locked(rank):
-                self._latest.put(step)
+    # --- runs -----------------------------------------------------------------------
+    def _open_instance(self) -> RunInstance:
+        o = self.options
+        name, log_path = instance_paths(o.out_dir, o.record, self.run)
+        writer = None
+        if log_path is not None:
+            try:
+                writer = open_writer(log_path, self.run, name)
+            except OSError as exc:
+                self._error(f"cannot open the log {log_path}: {exc}; this run is not logged")
+        self._seq += 1
+        inst = RunInstance(self._seq, name, o.out_dir / name, writer,
+                           StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes,
+                                         instance=self._seq))
+        self._instances[inst.seq] = self._instance = self._last = inst
+        self.finished.clear()
+        if self._log is not None:
+            self._log.put(writer, keys.spec(self.run), self.spec.encode(), time.time_ns(),
+                          self.spec)
+        self._publish_event(inst, EventKind.RUN_START,
+                            f"render server up, {len(self.spec.views)} views", {"name": name})
+        return inst
 
-    def _settle_gone_ranks(self) -> list:
-        """Ranks whose done event's chunks have all arrived, or whose token vanished over
-        TOKEN_GRACE_S ago without one, are gone (called with the lock held)."""
-        now = time.monotonic_ns()
-        out = []
-        for rank, sent in list(self._rank_chunks_sent.items()):
-            if rank not in self._ranks_gone and self._rank_chunks_received.get(rank, 0) >= sent:
-                out += self._gone_locked(rank)
-        for rank, t in list(self._token_gone_ns.items()):
-            waiting = rank in self._rank_chunks_sent and rank not in self._ranks_gone
-            if rank not in self._ranks_gone and (now - t >= TOKEN_GRACE_S * 1e9) and (
-                    not waiting or now - t >= self.options.timeout_s * 1e9):
-                out += self._gone_locked(rank)
-        return out
+    def _active(self) -> RunInstance | None:
+        """The run a rank's chunk or new token belongs to: the open one, or a new one once
+        the last has ended (waiting, bounded by the stop, for its last step's render)."""
+        inst = self._instance
+        if inst is not None and not inst.drained:
+            return inst
+        while inst is not None and not inst.finished.wait(RECEIVE_POLL_S):
+            if self._stop.is_set():
+                return None
+        return self._open_instance()
 
-    def _gone_locked(self, rank: int) -> list:
-        self._ranks_gone.add(rank)
-        self._ranks_expected = max(self._ranks_expected, rank + 1)
-        return self._assembler.rank_gone(rank, time.time_ns())
+    def _current(self) -> RunInstance | None:
+        """The open run for a rank's other messages (events, stats); None between runs."""
+        inst = self._instance
+        return inst if inst is not None and not inst.drained else None
+
+    def _finish_instance(self, inst: RunInstance) -> None:
+        """The run's last step is rendered: say so, close its log."""
+        self._publish_event(inst, EventKind.RUN_END, "run ended", self._summary(inst))
+        if self._log is not None:
+            self._log.close_writer(inst.writer)
+        self._instances.pop(inst.seq, None)
+        if self._instance is inst:
+            self._instance = None
+            self.finished.set()
+        inst.finished.set()
 
     # --- threads --------------------------------------------------------------------
     def _receive_loop(self) -> None:
         while not self._stop.is_set():
+            try:
+                self._take_tokens()
+                self._take_side()
+            except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
+                self._error(f"handling a rank event failed: {exc!r}")
             item = self._inbox.get(timeout=RECEIVE_POLL_S)
             try:
-                done, drained = self._receive(item)
+                self._receive(item)
             except Exception as exc:  # noqa: BLE001 - the loop must outlive any chunk
                 self._error(f"receiving {item.key if item else 'nothing'} failed: {exc!r}")
-                continue
-            for step in done:
-                self._latest.put(step)
-            if drained:
-                self._drained.set()
 
-    def _receive(self, item) -> tuple[list[AssembledStep], bool]:
-        """Take one received chunk (or none, on a timeout): the steps now ready, and whether
-        the run is over and everything is released."""
-        drained = False
-        with self._lock:
-            done = self._assembler.expire(time.time_ns())
-            if item is not None:
-                try:
-                    chunk = decode_as(item.payload, Chunk)
-                except ProtocolError as exc:
-                    self.stats.rejected += 1
-                    self._error(f"rejected chunk on {item.key}: {exc}")
-                else:
-                    self.stats.chunks += 1
-                    self._ranks_expected = max(self._ranks_expected, chunk.ranks)
-                    r = chunk.rank
-                    self._rank_chunks_received[r] = self._rank_chunks_received.get(r, 0) + 1
-                    done += self._assembler.add(chunk, item.recv_ns, len(item.payload))
-            done += self._settle_gone_ranks()
-            if (item is None and self._ranks_expected and not self._drained.is_set()
-                    and self._ranks_gone >= set(range(self._ranks_expected))):
-                done += self._assembler.drain(time.time_ns())  # the run is over
-                drained = True
-        return done, drained
+    def _take_tokens(self) -> None:
+        while True:
+            try:
+                rank, alive, t_ns = self._tokens.get_nowait()
+            except queue.Empty:
+                return
+            if alive:
+                inst = self._active()
+                if inst is not None:
+                    inst.ranks_expected = max(inst.ranks_expected, rank + 1)
+            elif (inst := self._current()) is not None:  # died, or ended (its done event says)
+                inst.token_gone_ns.setdefault(rank, t_ns)
+
+    def _take_side(self) -> None:
+        """Rank events and stats: log them in the open run; a done event settles its rank."""
+        while (item := self._side.get(timeout=0)) is not None:
+            kind = keys.parse(item.key)
+            cls = Event if kind is not None and kind.topic == keys.Topic.EVENT else Stats
+            inst = self._current()
+            try:
+                message = decode_as(item.payload, cls)
+            except ProtocolError as exc:
+                self._error(f"malformed {cls.__name__.lower()} on {item.key}: {exc}")
+                message = None
+            if message is not None and cls is Event and message.rank < 0:
+                continue  # the server's own events are logged as published
+            if inst is None:
+                self.between_runs += 1
+                continue
+            if self._log is not None:  # a malformed one goes to the log's rejected topic
+                self._log.put(inst.writer, item.key, item.payload, item.recv_ns, message)
+            if message is not None and cls is Event and message.kind == EventKind.RANK_DONE:
+                sent = message.detail.get("sent")
+                if type(sent) is int and sent >= 0:
+                    inst.chunks_sent[message.rank] = sent
+                    if inst.chunks_received.get(message.rank, 0) < sent:
+                        continue  # gone once its last chunk is in (_settle_gone_ranks)
+                self._release(self._gone(inst, message.rank))
+
+    def _receive(self, item) -> None:
+        """Take one received chunk (or none, on a timeout): assemble, expire, settle ranks."""
+        now = time.time_ns()
+        if item is not None:
+            inst = self._active()
+            if inst is None:
+                return
+            try:
+                chunk = decode_as(item.payload, Chunk)
+            except ProtocolError as exc:
+                inst.stats.rejected += 1
+                self._error(f"rejected chunk on {item.key}: {exc}")
+                chunk = None
+            if self._log is not None:
+                self._log.put(inst.writer, item.key, item.payload, item.recv_ns, chunk)
+            if chunk is not None:
+                inst.stats.chunks += 1
+                inst.ranks_expected = max(inst.ranks_expected, chunk.ranks)
+                r = chunk.rank
+                inst.chunks_received[r] = inst.chunks_received.get(r, 0) + 1
+                self._release(inst.assembler.add(chunk, item.recv_ns, len(item.payload)))
+        for inst in list(self._instances.values()):
+            if inst.drained:
+                continue
+            self._release(inst.assembler.expire(now))
+            self._settle_gone_ranks(inst)
+            if item is None and inst.all_gone():
+                self._release(inst.assembler.drain(now))  # the run is over
+                inst.drained = True
+
+    def _release(self, steps: list[AssembledStep]) -> None:
+        for step in steps:
+            self._latest.put(step)
+
+    def _settle_gone_ranks(self, inst: RunInstance) -> None:
+        """Ranks whose done event's chunks have all arrived, or whose token vanished over
+        TOKEN_GRACE_S ago without one, are gone."""
+        now = time.monotonic_ns()
+        for rank, sent in list(inst.chunks_sent.items()):
+            if rank not in inst.ranks_gone and inst.chunks_received.get(rank, 0) >= sent:
+                self._release(self._gone(inst, rank))
+        for rank, t in list(inst.token_gone_ns.items()):
+            waiting = rank in inst.chunks_sent and rank not in inst.ranks_gone
+            if rank not in inst.ranks_gone and (now - t >= TOKEN_GRACE_S * 1e9) and (
+                    not waiting or now - t >= self.options.timeout_s * 1e9):
+                self._release(self._gone(inst, rank))
+
+    def _gone(self, inst: RunInstance, rank: int) -> list[AssembledStep]:
+        inst.ranks_gone.add(rank)
+        inst.ranks_expected = max(inst.ranks_expected, rank + 1)
+        return inst.assembler.rank_gone(rank, time.time_ns())
 
     def _render_loop(self) -> None:
         while not self._stop.is_set():
@@ -252,78 +322,106 @@ class RenderServer:
                 try:
                     self.render_step(step)
                 except Exception as exc:  # noqa: BLE001 - keep serving the next steps
-                    self.stats.view_errors += 1
+                    self._instance_of(step).stats.view_errors += 1
                     self._error(f"step {step.step} failed to render: {exc!r}")
-            elif self._drained.is_set() and self._latest.empty():
-                self.finished.set()  # every rank is done and its last step rendered
-        self.stats.steps_skipped = self._latest.replaced
+            elif self._latest.empty():
+                for inst in list(self._instances.values()):
+                    if inst.drained:  # every rank is done and its last step rendered
+                        self._finish_instance(inst)
+
+    def _instance_of(self, step: AssembledStep) -> RunInstance:
+        return self._instances.get(step.instance) or self._last
 
     def render_step(self, step: AssembledStep) -> None:
         """Render every view the schedule asks for at this step; publish frames and timing."""
+        inst = self._instance_of(step)
         results = render_views(step, self.spec, self._canvases, self.options.shadows)
         if not results:
             return
         for r in results:
             if r.error:
-                self.stats.view_errors += 1
+                inst.stats.view_errors += 1
                 self._error(r.error)
                 continue
             view = r.view
             if self.options.write_png:
-                path = self.options.out_dir / self.run / view.name / f"{step.step:06d}.png"
+                path = inst.frames_dir / view.name / f"{step.step:06d}.png"
                 try:
                     path.parent.mkdir(parents=True, exist_ok=True)
                     path.write_bytes(r.png)
                 except OSError as exc:  # the frame is still published
-                    self.stats.write_errors += 1
+                    inst.stats.write_errors += 1
                     self._error(f"cannot write {path}: {exc}")
             frame = Frame(self.run, view.name, step.step, step.time_s, view.width, view.height,
                           r.png)
-            put(self.session, keys.frame(self.run, view.name), frame.encode(), FRAME_QOS)
+            self._publish(inst, keys.frame(self.run, view.name), frame, FRAME_QOS)
             timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s,
                             r.setup_s, r.render_s, step.nbytes, len(step.positions),
                             step.ranks_expected, step.ranks_received, step.incomplete)
-            put(self.session, keys.timing(self.run), timing.encode(), CONTROL_QOS)
-            self.stats.frames += 1
-        self.stats.steps_rendered += 1
+            self._publish(inst, keys.timing(self.run), timing, CONTROL_QOS)
+            inst.stats.frames += 1
+        inst.stats.steps_rendered += 1
 
-    # --- events and shutdown --------------------------------------------------------
-    def _event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
+    # --- publishing, events and shutdown --------------------------------------------
+    def _publish(self, inst: RunInstance | None, key: str, message, qos) -> None:
+        """Put a message of the server's own and log it in the run it belongs to (the
+        subscriber side ignores the server's own frames, timing and events)."""
+        payload = message.encode()
+        put(self.session, key, payload, qos)
+        if self._log is not None and inst is not None:
+            message.sent_ns = struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0]
+            self._log.put(inst.writer, key, payload, time.time_ns(), message)
+
+    def _publish_event(self, inst: RunInstance | None, kind: EventKind, message: str,
+                       detail: dict | None = None) -> None:
         event = Event(self.run, kind, -1, message[:4000], detail or {})
-        put(self.session, keys.event(self.run), event.encode(), CONTROL_QOS)
+        self._publish(inst, keys.event(self.run), event, CONTROL_QOS)
 
     def _error(self, message: str) -> None:
         """Log an error and publish it as an event, at most one per interval."""
-        self.stats.last_error = message
-        self.stats.errors_unreported += 1
+        if self._last is not None:
+            self._last.stats.last_error = message
+        self._errors_unreported += 1
         now = time.monotonic()
         if now - self._last_error_event >= ERROR_EVENT_INTERVAL_S:
             print(f"minority serve: {message}", file=sys.stderr, flush=True)
-            self._event(EventKind.ERROR, message, {"errors": self.stats.errors_unreported})
-            self.stats.errors_unreported = 0
+            self._publish_event(self._current() or self._last, EventKind.ERROR, message,
+                                {"errors": self._errors_unreported})
+            self._errors_unreported = 0
             self._last_error_event = now
 
+    def _summary(self, inst: RunInstance) -> dict:
+        a, s = inst.assembler.stats, inst.stats
+        lost = inst.lost_in_transit()
+        return {"name": inst.name, "chunks": s.chunks, "rejected": s.rejected,
+                "steps_rendered": s.steps_rendered, "steps_skipped": self._latest.replaced,
+                "frames": s.frames, "view_errors": s.view_errors,
+                "write_errors": s.write_errors, "mismatched_fields": a.mismatched_fields,
+                "duplicates": a.duplicates, "late": a.late, "timed_out": a.timed_out,
+                "evicted": a.evicted, "inbox_dropped": self._inbox.dropped,
+                "lost_in_transit": sum(lost.values()),
+                "lost_by_rank": {str(r): n for r, n in lost.items()},
+                "log_dropped": (self._log.dropped_by.get(inst.writer.path, 0)
+                                if self._log is not None and inst.writer is not None else 0),
+                "log_unwritten": inst.writer.unwritten if inst.writer is not None else 0,
+                "between_runs": self.between_runs}
+
     def summary(self) -> dict:
-        a = self._assembler.stats
-        return {"chunks": self.stats.chunks, "rejected": self.stats.rejected,
-                "steps_rendered": self.stats.steps_rendered,
-                "steps_skipped": self._latest.replaced, "frames": self.stats.frames,
-                "view_errors": self.stats.view_errors, "write_errors": self.stats.write_errors,
-                "mismatched_fields": a.mismatched_fields, "duplicates": a.duplicates,
-                "late": a.late, "timed_out": a.timed_out, "evicted": a.evicted,
-                "inbox_dropped": self._inbox.dropped}
+        """The counters of the open run (or of the last one)."""
+        return self._summary(self._last)
 
     def close(self) -> None:
-        """Stop, render nothing more, publish run end, close the log (idempotent)."""
+        """Stop, render nothing more, end the open runs, close the logs (idempotent)."""
         if self._stop.is_set():
             return
         self._stop.set()
         for t in self._threads:
             t.join()
         self._inbox.close()
-        self._tokens.undeclare()
-        self._events.undeclare()
+        self._side.close()
+        self._token_sub.undeclare()
         self._queryable.undeclare()
-        self._event(EventKind.RUN_END, "render server stopping", self.summary())
-        if self.recorder is not None:
-            self.recorder.close()
+        for inst in list(self._instances.values()):
+            self._finish_instance(inst)
+        if self._log is not None:
+            self._log.stop()

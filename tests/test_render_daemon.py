@@ -4,6 +4,7 @@ killed mid-step releases the step as incomplete. Waits are on message counts."""
 
 import queue
 import threading
+import warnings
 
 import numpy as np
 import pytest
@@ -35,6 +36,9 @@ class EveryStep:
             return self._queue.get(timeout=timeout)
         except queue.Empty:
             return None
+
+    def empty(self) -> bool:
+        return self._queue.empty()
 
 
 def spec() -> Spec:
@@ -285,3 +289,93 @@ def make_step(step: int):
 
     return AssembledStep(step, 0.001 * step, np.zeros((1, 3), np.float32), {}, 0.01, 1, 1, 0,
                          0.0, False)
+
+
+def done_event(rank: int, sent: int | None = None) -> bytearray:
+    from protocol import Event, EventKind
+
+    return Event(RUN, EventKind.RANK_DONE, rank, "done",
+                 {} if sent is None else {"sent": sent}).encode()
+
+
+def test_the_same_run_id_runs_again_with_its_own_state_log_and_frames(daemon, client_factory,
+                                                                       tmp_path):
+    """A run that ended (every rank done) and a second run with the same id: the second is
+    rendered from step 0 (its steps are not 'late'), into frames/{run}.1/ and run.1.mcap."""
+    daemon._latest = EveryStep()  # every frame counted
+    sim = client_factory()
+    timing = Inbox(sim, keys.timing(RUN))
+    for step in (0, 20, 2**40):  # an absurd step in the first run hides nothing after it
+        send_step(sim, step, ranks=1)
+    for rank in (0,):
+        put(sim, keys.event(RUN), done_event(rank, 3), LOSSLESS_QOS)
+    assert daemon.finished.wait(TIMEOUT_S)
+    assert wait_until(lambda: timing.received >= 2)
+    first = daemon.summary()
+    for step in (0, 20):
+        send_step(sim, step, ranks=1)
+    assert wait_until(lambda: daemon.stats.chunks == 2 and daemon.stats.frames == 2), \
+        daemon.summary()
+    second = daemon.summary()
+    assert first["name"] == RUN and second["name"] == f"{RUN}.1"
+    assert second["late"] == 0 and second["rejected"] == 0
+    put(sim, keys.event(RUN), done_event(0, 2), LOSSLESS_QOS)
+    assert daemon.finished.wait(TIMEOUT_S)
+    daemon.close()
+    frames = tmp_path / "frames"
+    assert sorted(p.name for p in (frames / f"{RUN}.1" / "side").iterdir()) == \
+        ["000000.png", "000020.png"]
+    assert (frames / RUN / "side" / "000000.png").exists()
+    for log, chunks in ((tmp_path / "run.mcap", 3), (tmp_path / "run.1.mcap", 2)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # complete, undamaged
+            records = list(read_log(log))
+        topics = [r.topic for r in records]
+        assert topics[0] == f"minority/{RUN}/spec" and topics.count(f"minority/{RUN}/chunk") == chunks
+        events = [r.decode() for r in records if r.topic.endswith("/event")]
+        assert [e.kind for e in events] == ["run_start", "rank_done", "run_end"]
+        assert events[-1].detail["lost_in_transit"] == 0
+
+
+def test_chunks_a_rank_sent_that_never_came_are_counted_lost(daemon, client_factory):
+    sim = client_factory()
+    send_step(sim, 0, ranks=1)
+    assert wait_until(lambda: daemon.stats.chunks == 1)
+    token = sim.liveliness().declare_token(keys.rank_token(RUN, 0))
+    put(sim, keys.event(RUN), done_event(0, 5), LOSSLESS_QOS)  # says 5, the server has 1
+    token.undeclare()  # it is gone: the server waits timeout_s for the 4 others, then ends
+    daemon.options.timeout_s = 0.1
+    assert daemon.finished.wait(TIMEOUT_S)
+    s = daemon.summary()
+    assert s["lost_in_transit"] == 4 and s["lost_by_rank"] == {"0": 4}
+
+
+def test_frames_and_timing_forged_by_another_peer_are_not_logged(daemon, client_factory,
+                                                                 tmp_path):
+    sim, forger = client_factory(), client_factory()
+    frames = Inbox(sim, keys.frames(RUN))
+    forged = Timing(RUN, 99, "side", render_s=1e6)
+    put(forger, keys.timing(RUN), forged.encode(), LOSSLESS_QOS)
+    send_step(sim, 0)
+    assert wait_until(lambda: frames.received == 1)
+    daemon.close()
+    steps = [r.decode().step for r in read_log(tmp_path / "run.mcap", [f"minority/{RUN}/timing"])]
+    assert steps == [0]
+
+
+def test_an_idle_server_does_not_revisit_every_rank_a_header_named(daemon, client_factory):
+    """One valid chunk naming 2**20 ranks: each idle poll must not build a set of them."""
+    import tracemalloc
+
+    sim = client_factory()
+    chunk = make_chunk(n=5, step=1, rank=0, ranks=2**20, run=RUN)
+    put(sim, keys.chunk(RUN, 1, 0), chunk.encode(), LOSSLESS_QOS)
+    assert wait_until(lambda: daemon.stats.chunks == 1)
+    tracemalloc.start()
+    try:
+        for _ in range(20):
+            daemon._receive(None)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20  # bytes; a set of 2**20 ranks is over 32 MiB

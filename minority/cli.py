@@ -44,9 +44,10 @@ def _open_peer(opts, role, command: str, wait_s: float):
 def _cmd_record(args: argparse.Namespace) -> int:
     from mcap.writer import CompressionType
 
-    from protocol.log import Recorder
+    from protocol.log import Recorder, free_log_path
     from protocol.session import Role, options_from_args
 
+    args.output = free_log_path(args.output)  # never overwrite a log
     opts = options_from_args(args)
     opts.connect_timeout_s = args.wait
     role = Role.SERVER if args.listen else Role.CLIENT  # --listen: sims may connect to us
@@ -90,41 +91,57 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from render_server.daemon import RenderServer, ServerOptions
 
     try:
-        spec = Spec.load(args.spec)
+        specs = [Spec.load(path) for path in args.spec]
     except (SpecError, OSError) as exc:
         print(f"minority serve: error: {exc}", file=sys.stderr)
         return 1
-    record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
+    runs = [s.run for s in specs]
+    if len(set(runs)) < len(runs):
+        print(f"minority serve: error: two specs name the same run ({', '.join(runs)}); a "
+              "server serves each run id once", file=sys.stderr)
+        return 2
+    if args.record and len(specs) > 1:
+        print("minority serve: error: --record names one log: with several specs each run "
+              "logs to DIR/{run}.mcap", file=sys.stderr)
+        return 2
     opts = options_from_args(args)
     # the server's own large puts are frames: a pool for the largest raw image
-    opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for v in spec.views), default=0)
-                                       + 65536)
+    opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for s in specs
+                                            for v in s.views), default=0) + 65536)
     try:
         session = open_session(opts, Role.SERVER)
     except zenoh.ZError as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 1
+    servers = []
     try:
-        if record is not None:
-            record.parent.mkdir(parents=True, exist_ok=True)
-        server = RenderServer(session, ServerOptions(spec, args.out, record, args.timeout,
-                                                     shadows=args.shadows))
+        for spec in specs:
+            record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
+            servers.append(RenderServer(session, ServerOptions(spec, args.out, record,
+                                                               args.timeout,
+                                                               shadows=args.shadows)))
+            run = servers[-1].current
+            print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to "
+                  f"{run.frames_dir}/" + (f", log {run.writer.path}" if run.writer else ""),
+                  file=sys.stderr, flush=True)
     except OSError as exc:
         print(f"minority serve: error: cannot start: {exc}", file=sys.stderr)
+        for s in servers:
+            s.close()
         session.close()
         return 1
     stop = _stop_on_signals()
-    print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to {args.out}/{spec.run}/"
-          + (f", log {record}" if record else ""), file=sys.stderr, flush=True)
     try:
         while not stop.wait(0.2):
-            if args.exit_when_done and server.finished.is_set():
+            if args.exit_when_done and all(s.finished.is_set() for s in servers):
                 print("every rank is done and the last step rendered", file=sys.stderr)
                 break
     finally:
-        server.close()
+        for s in servers:
+            s.close()
         session.close()
-    print(f"stopped: {server.summary()}", file=sys.stderr)
+    for s in servers:
+        print(f"stopped: {s.summary()}", file=sys.stderr)
     return 0
 
 
@@ -305,23 +322,28 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("serve", help="run the render server daemon",
-                       description="Run the render server until SIGINT/SIGTERM: serve the spec "
-                                   "on minority/{run}/spec, receive chunks, assemble steps, "
+                       description="Run the render server until SIGINT/SIGTERM: serve each "
+                                   "spec on minority/{run}/spec, receive chunks, assemble steps, "
                                    "ray-trace the scheduled views to DIR/{run}/{view}/"
                                    "{step:06d}.png, publish frames and timing, record every "
-                                   "message of the run to MCAP.")
-    p.add_argument("--spec", type=Path, required=True, help="oracle spec JSON file")
+                                   "message of the run to MCAP. A run id may run again (a new "
+                                   "sim after the last one ended, or a server restart): each "
+                                   "run gets the first free name of {run}, {run}.1, ... for "
+                                   "its frames and log, so nothing is overwritten.")
+    p.add_argument("--spec", type=Path, required=True, action="append",
+                   help="oracle spec JSON file; repeat it to serve several runs at once")
     p.add_argument("--out", type=Path, default=Path("frames"), metavar="DIR",
                    help="frame directory (default: frames)")
     p.add_argument("--record", type=Path, metavar="FILE.mcap",
-                   help="MCAP log of the run (default: DIR/{run}.mcap)")
+                   help="MCAP log of the run (one spec only; default: DIR/{run}.mcap); a "
+                        "later run or an existing file gets FILE.1.mcap, ...")
     p.add_argument("--no-record", action="store_true", help="do not write an MCAP log")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S",
                    help="render a step with what arrived S seconds after its first chunk "
                         "(default 5)")
     p.add_argument("--shadows", action="store_true", help="cast shadow rays (slower)")
     p.add_argument("--exit-when-done", action="store_true",
-                   help="exit once every rank of the run is done and its last step rendered "
+                   help="exit once every rank of each run is done and its last step rendered "
                         "(for batch jobs and the demo; default: serve until stopped)")
     _add_network(p)
     p.set_defaults(func=_cmd_serve)
@@ -451,6 +473,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     _add_network(p)
     p.set_defaults(func=_cmd_record)
+
+    from minority import log_cli
+
+    log_cli.add_parser(sub)
 
     p = sub.add_parser("demo", help="the whole pipeline on one machine, embedded defaults",
                        description="Oracle rollout, spec, render server, 2-rank sim, frames, "

@@ -146,6 +146,11 @@ class RenderServer:
         put(session, keys.spec(self.run), self.spec.encode(), CONTROL_QOS)
 
     @property
+    def current(self) -> RunInstance:
+        """The open run (or the last one, once it ended): its name, frame directory, log."""
+        return self._last
+
+    @property
     def stats(self) -> ServerStats:
         """The counters of the open run (or of the last one, once it ended)."""
         return self._last.stats

@@ -474,9 +474,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_network(p)
     p.set_defaults(func=_cmd_record)
 
-    from minority import log_cli
+    from minority import deploy_cli, log_cli
 
     log_cli.add_parser(sub)
+    deploy_cli.add_parser(sub)
 
     p = sub.add_parser("demo", help="the whole pipeline on one machine, embedded defaults",
                        description="Oracle rollout, spec, render server, 2-rank sim, frames, "

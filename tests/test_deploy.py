@@ -28,7 +28,8 @@ from protocol.session import NetworkOptions, Role, make_config, open_session
 ROOT = Path(__file__).parent.parent
 DEPLOY = ROOT / "deploy"
 ZENOH_FILES = sorted((DEPLOY / "zenoh").glob("*.json5"))
-SHELL_SCRIPTS = [DEPLOY / "tls" / "make-certs.sh", DEPLOY / "slurm" / "minority.sbatch"]
+SHELL_SCRIPTS = [DEPLOY / "tls" / "make-certs.sh", DEPLOY / "tls" / "make-run-certs.sh",
+                 DEPLOY / "slurm" / "minority.sbatch"]
 UNIT = DEPLOY / "systemd" / "minority-serve.service"
 RUN = "deploy-test"
 TIMEOUT_S = 10.0
@@ -177,6 +178,7 @@ class Deployment:
         self.server_seen, self.server_tokens = Seen(), Seen()
         self.server.declare_subscriber(keys.chunks(RUN), self.server_seen)
         self.server.declare_subscriber(keys.event(RUN), self.server_seen)
+        self.server.declare_subscriber(keys.stats(RUN), self.server_seen)
         self.server.declare_queryable(keys.spec(RUN), self._on_query)
         self.server.liveliness().declare_subscriber(keys.rank_tokens(RUN), self.server_tokens,
                                                     history=True)
@@ -227,15 +229,17 @@ def test_tls_identities_reach_the_router(deployment):
         assert [str(z) for z in session.info.routers_zid()] == [str(deployment.router.zid())]
 
 
-def test_rank_publishes_chunks_events_and_token_and_gets_the_spec(deployment):
+def test_rank_publishes_chunks_events_stats_and_token_and_gets_the_spec(deployment):
     d = deployment
     assert spec_replies(d.rank) == [b"the spec"]
     token = d.rank.liveliness().declare_token(keys.rank_token(RUN, 3))
     assert d.server_tokens.wait_for(keys.rank_token(RUN, 3))
     d.rank.put(keys.chunk(RUN, 5, 3), b"chunk", congestion_control=zenoh.CongestionControl.BLOCK)
     d.rank.put(keys.event(RUN), b"rank_done", congestion_control=zenoh.CongestionControl.BLOCK)
+    d.rank.put(keys.stats(RUN), b"stats", congestion_control=zenoh.CongestionControl.BLOCK)
     assert d.server_seen.wait_for(keys.chunk(RUN, 5, 3))
     assert d.server_seen.wait_for(keys.event(RUN))
+    assert d.server_seen.wait_for(keys.stats(RUN))  # sim/publish.py's flow statistics
     assert d.viewer_seen.wait_for(keys.event(RUN))
     token.undeclare()
     assert d.server_tokens.wait_for(f"DELETE:{keys.rank_token(RUN, 3)}")

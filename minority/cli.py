@@ -30,14 +30,20 @@ def _open_peer(opts, role, command: str, wait_s: float):
     """A zenoh session, or None after saying in one line why no peer was reached."""
     import zenoh
 
+    from protocol.auth import CredentialsError, credentials_dir
     from protocol.session import open_session
 
     try:
         return open_session(opts, role)
+    except CredentialsError as exc:
+        print(f"minority {command}: error: {exc}", file=sys.stderr)
+        return None
     except zenoh.ZError as exc:
         where = ", ".join(opts.connect) or "the default endpoint"
         print(f"minority {command}: cannot reach a zenoh peer at {where} within {wait_s:g} s "
-              f"(start `minority serve` first, or pass --connect): {exc}", file=sys.stderr)
+              f"(start `minority serve` first, or pass --connect; a server of another user, "
+              f"or one whose password is not in {credentials_dir()}, refuses the link): {exc}",
+              file=sys.stderr)
         return None
 
 
@@ -110,7 +116,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                                             for v in s.views), default=0) + 65536)
     try:
         session = open_session(opts, Role.SERVER)
-    except zenoh.ZError as exc:
+    except (zenoh.ZError, OSError) as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 1
     servers = []

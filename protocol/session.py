@@ -3,8 +3,10 @@ and the explicit QoS of each message stream.
 
 Embedded default (one machine, no router to install): the render server is a peer that
 listens on tcp/127.0.0.1:7447; ranks, recorders and replays are clients that connect to
-it. Multicast scouting is off. Shared memory is on, with an implicit-SHM pool large enough
-for a 1M-particle chunk, so large puts between processes on one host skip the TCP copy.
+it. Multicast scouting is off. The server requires a password that it keeps in a file only
+its user can read, and local clients send it (protocol.auth). Shared memory is on, with an
+implicit-SHM pool large enough for a 1M-particle chunk, so large puts between processes on
+one host skip the TCP copy.
 zenoh writes the whole pool when a session first puts through it (about 3 ms of CPU per
 MiB here), so a sender that knows its largest message sizes the pool with `shm_pool_for`.
 """
@@ -12,16 +14,26 @@ MiB here), so a sender that knows its largest message sizes the pool with `shm_p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
 import zenoh
 
+from protocol.auth import (
+    Credentials,
+    client_credentials,
+    credentials_dir,
+    forget_server_credentials,
+    read_credentials,
+    server_credentials,
+)
 from protocol.wire import stamp_sent
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -51,6 +63,9 @@ class NetworkOptions:
     config: Path | None = None
     connect_timeout_s: float = 0.0  # clients: keep retrying for this long at start (0 = once)
     shm_pool_bytes: int = SHM_POOL_BYTES  # implicit shared-memory pool (embedded config only)
+    auth: bool = True  # embedded default: user/password authentication (protocol.auth)
+    credentials_file: Path | None = None  # --credentials: this file instead of the local one
+    credentials: Credentials | None = None  # resolved by with_credentials (make_config uses it)
 
 
 def shm_pool_for(message_bytes: int) -> int:
@@ -68,10 +83,37 @@ def add_network_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="zenoh JSON5 config file; it replaces the embedded default, and "
                         "--connect/--listen still override its endpoints")
+    g.add_argument("--credentials", type=Path, default=None, metavar="FILE",
+                   help="a 'user:password' file (mode 600): a listening peer requires it, a "
+                        "client sends it (default: on one host, the server makes one per "
+                        f"endpoint in {credentials_dir()} and local clients read it)")
+    g.add_argument("--no-auth", action="store_true",
+                   help="a listening peer lets any peer connect without credentials")
 
 
 def options_from_args(args: argparse.Namespace) -> NetworkOptions:
-    return NetworkOptions(connect=list(args.connect), listen=list(args.listen), config=args.config)
+    return NetworkOptions(connect=list(args.connect), listen=list(args.listen), config=args.config,
+                          auth=not args.no_auth, credentials_file=args.credentials)
+
+
+def with_credentials(opts: NetworkOptions, role: Role) -> NetworkOptions:
+    """Resolve the credentials of the embedded default (protocol.auth): a server makes or
+    reuses its endpoints' password (or, with auth off, removes their files); a client reads
+    the file of the local endpoint it connects to. A --config file decides for itself."""
+    if opts.credentials is not None:
+        return opts
+    if opts.credentials_file is not None:
+        return dataclasses.replace(opts, credentials=read_credentials(opts.credentials_file))
+    if opts.config is not None:
+        return opts
+    if role is Role.SERVER:
+        listen = opts.listen or [DEFAULT_ENDPOINT]
+        if not opts.auth:
+            forget_server_credentials(listen)
+            return opts
+        return dataclasses.replace(opts, credentials=server_credentials(listen))
+    return dataclasses.replace(opts, credentials=client_credentials(opts.connect or
+                                                                    [DEFAULT_ENDPOINT]))
 
 
 def _put(cfg: zenoh.Config, key: str, value) -> None:
@@ -101,6 +143,13 @@ def make_config(opts: NetworkOptions, role: Role) -> zenoh.Config:
         _put(cfg, "listen/endpoints", opts.listen)
     if opts.connect or (opts.config is None and role is Role.CLIENT):
         _put(cfg, "connect/endpoints", opts.connect or [DEFAULT_ENDPOINT])
+    if opts.credentials is not None:  # see with_credentials
+        c = opts.credentials
+        if role is Role.SERVER:
+            _put(cfg, "transport/auth/usrpwd/dictionary_file", str(c.path))
+        else:
+            _put(cfg, "transport/auth/usrpwd/user", c.user)
+            _put(cfg, "transport/auth/usrpwd/password", c.password)
     if role is Role.CLIENT and opts.connect_timeout_s > 0:
         _put(cfg, "connect/timeout_ms", {"client": int(opts.connect_timeout_s * 1000)})
         _put(cfg, "connect/retry", {"period_init_ms": 50, "period_max_ms": 500,
@@ -108,9 +157,34 @@ def make_config(opts: NetworkOptions, role: Role) -> zenoh.Config:
     return cfg
 
 
-def open_session(opts: NetworkOptions | None = None, role: Role = Role.CLIENT) -> zenoh.Session:
-    """Open a zenoh session; a client with no server to connect to raises zenoh.ZError."""
-    return zenoh.open(make_config(opts or NetworkOptions(), role))
+CONNECT_ATTEMPT_S = 1.0  # a client's connect timeout is tried in attempts this long
+RETRY_WAIT_S = 0.05  # between attempts that failed at once (e.g. refused without credentials)
+
+
+def open_session(opts: NetworkOptions | None = None, role: Role = Role.CLIENT,
+                 configure: Callable[[zenoh.Config], None] | None = None) -> zenoh.Session:
+    """Open a zenoh session (`configure` may edit the config first). A client keeps trying
+    for opts.connect_timeout_s, in attempts that each read the server's credentials anew (a
+    server started at the same moment writes them first). A client with no server to
+    connect to, or refused by it (no or wrong credentials), raises zenoh.ZError; an unusable
+    credentials file raises CredentialsError."""
+    opts = opts or NetworkOptions()
+    deadline = time.monotonic() + opts.connect_timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        attempt = opts
+        if role is Role.CLIENT and opts.connect_timeout_s > 0:
+            attempt = dataclasses.replace(opts, connect_timeout_s=max(min(left, CONNECT_ATTEMPT_S),
+                                                                      0.01))
+        cfg = make_config(with_credentials(attempt, role), role)
+        if configure is not None:
+            configure(cfg)
+        try:
+            return zenoh.open(cfg)
+        except zenoh.ZError:
+            if role is not Role.CLIENT or time.monotonic() >= deadline:
+                raise
+        threading.Event().wait(RETRY_WAIT_S)
 
 
 @dataclass(frozen=True)

@@ -2,14 +2,29 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
+import tempfile
 import zlib
 
 import numpy as np
 import pytest
 
 from protocol import Chunk, Event, EventKind, Frame, Spec, Stats, Timing
+from protocol.auth import CREDENTIALS_ENV
 from protocol.session import NetworkOptions, Role, open_session
+
+
+def pytest_configure(config) -> None:
+    """Servers' credentials (protocol.auth) go to a directory of this test session, never the
+    user's own (subprocesses inherit it)."""
+    config._minority_credentials = tempfile.mkdtemp(prefix="minority-credentials-")
+    os.environ[CREDENTIALS_ENV] = config._minority_credentials
+
+
+def pytest_unconfigure(config) -> None:
+    shutil.rmtree(getattr(config, "_minority_credentials", ""), ignore_errors=True)
 
 
 def free_port() -> int:

@@ -112,6 +112,7 @@ class RenderServer:
         self.options = options
         self.spec = options.spec
         self.run = options.spec.run
+        self._spec_payload = bytes(self.spec.encode())  # ranks ask ~10 times/s (sim.publish)
         self._stop = threading.Event()
         self._last_error_event = 0.0
         self._errors_unreported = 0
@@ -157,7 +158,7 @@ class RenderServer:
 
     # --- zenoh callbacks (enqueue or small work only) ---------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
-        query.reply(keys.spec(self.run), bytes(self.spec.encode()))
+        query.reply(keys.spec(self.run), self._spec_payload)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse(str(sample.key_expr))

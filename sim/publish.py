@@ -29,7 +29,41 @@ without ever blocking the simulation.
 * Stats messages go through the same outbox, bounded on their own (OUTBOX_STATS, the oldest
   dropped first, counted in `stats_dropped`); spec and events always enter.
 * With a record path, the sender thread also writes every message it takes from the
-  outbox (spec, chunks, stats, events, as published) to that rank's MCAP file.
+  outbox (spec, chunks, stats, events, as published) to that rank's MCAP record.
+
+What `sent` means, and what is exact. `sent` is what the rank believes reached a subscriber
+(the render server waits for that many chunks of the rank, and reports the difference to
+what it received as lost in transit); it never exceeds what was put.
+
+* No subscriber. zenoh puts into the void without an error when nothing subscribes, so
+  `start` declares one publisher on the run's chunk key space (`minority/{run}/chunk/**`)
+  and one on its stats key, never put through, only for their matching status (read by the
+  sender thread before each put, about 0.5 us; the simulation thread never touches it), and
+  waits one round trip so the status is known before the first chunk (measured: it is, in
+  600 of 600 tries). A chunk (a Stats message) with no subscriber matching is not put:
+  `dropped_no_subscriber` (`stats_dropped`). Exact as of the check; a subscriber that
+  leaves during the put is the server's loss to report.
+* Stalls. A chunk whose put zenoh gave up, and the chunks not put while stalled, are
+  `dropped_stalled`: exact. The chunks put quickly just before a stall are the uncertain
+  ones: zenoh accepted them into its queues, then may have dropped them with the link.
+  *Checkpoints* bound them: after a put, at most every CHECKPOINT_INTERVAL_S and one at a
+  time, the sender sends a spec query at data priority behind the chunks (same queue, so
+  in order; a non-blocking get whose answer it polls). A spec answered by the server proves
+  that every chunk put before that query reached the server's session (`sent_confirmed`
+  counts them). When a stall is detected, every chunk put after the last answered
+  checkpoint (and not already settled) moves from `sent` (and its bytes and particles) to
+  `dropped_before_stall`: an upper bound of what zenoh dropped before the stall (some of
+  them may have arrived: a render server may receive more chunks of a rank than its
+  `sent`; measured with a subscriber that stops reading, about 600 chunks/s on loopback:
+  10 to 53 moved where 3 or 4 were lost, i.e. about CHECKPOINT_INTERVAL_S of puts on top
+  of the lost ones). Only a query *answer* proves delivery: a get also ends with no answer
+  when the link dies (measured), so an unanswered or timed-out checkpoint settles nothing.
+  With no spec queryable (no render server, e.g. a recorder alone) nothing is ever
+  confirmed, and a stall moves every chunk put since the start (or since the last stall).
+  Stats messages follow the same rule (`stats_sent` -> `stats_dropped`).
+* Chunks put after the last checkpoint with no stall detected stay in `sent`
+  (`sent - sent_confirmed` of them are unconfirmed): the rank has no evidence of their
+  loss; a render server that did not get them reports them as lost in transit.
 """
 
 from __future__ import annotations
@@ -40,6 +74,7 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
@@ -54,7 +89,7 @@ from protocol.messages import (
     EventKind,
     decode_as,
 )
-from protocol.session import NetworkOptions, QoS, Role, make_config, put
+from protocol.session import NetworkOptions, QoS, Role, open_session, put
 from protocol.spec import DataRequest, Spec
 from protocol.view import Window
 from sim.outbox import (
@@ -80,6 +115,11 @@ BLOCK_TIMEOUT_KEY = "transport/link/tx/queue/congestion_control/block/wait_befor
 STALL_FRACTION = 0.9  # a put that took this share of the block timeout was given up
 PROBE_INTERVAL_S = 1.0  # while stalled: ask the server for the spec this often
 PROBE_TIMEOUT_S = 1.0
+# While chunks flow: a spec query behind them at most this often (one in flight at a time);
+# its answer confirms the chunks put before it. 10 per second per rank: the render server's
+# spec reply costs it about 35 us (its spec's encode), 0.35 ms/s per rank.
+CHECKPOINT_INTERVAL_S = 0.1
+CHECKPOINT_TIMEOUT_S = 1.0
 
 
 def record_path(path: Path, rank: int) -> Path:
@@ -112,14 +152,17 @@ class PublishStats:
     did not leave the rank."""
 
     scheduled: int = 0  # chunks the spec's schedule asked for
-    sent: int = 0  # handed to zenoh (and recorded)
+    sent: int = 0  # put with a subscriber matching, and not moved to dropped_before_stall
+    sent_confirmed: int = 0  # of `sent`: reached the server (a later checkpoint answered)
     recorded: int = 0  # messages written to the rank's MCAP record
     record_errors: int = 0  # messages not recorded: the first failed write (a full disk) on
     bad_specs: int = 0  # spec updates that did not decode (the rank kept its spec)
     dropped_no_server: int = 0  # no zenoh session (nothing to send to)
+    dropped_no_subscriber: int = 0  # a session, but nothing subscribed to the chunk: not put
     dropped_outbox: int = 0  # the outbox was full: the server (or the disk) fell behind
     dropped_at_exit: int = 0  # still in the outbox when the drain timeout ran out
     dropped_stalled: int = 0  # given up by zenoh, or not put while the link was stalled
+    dropped_before_stall: int = 0  # put, unconfirmed when a stall came: an upper bound
     failed: int = 0  # zenoh refused the put (e.g. the session closed)
     stalls: int = 0  # times a put blocked for the whole block timeout
     bytes_sent: int = 0  # chunk payload bytes handed to zenoh
@@ -129,18 +172,42 @@ class PublishStats:
     missing_fields: list[str] = field(default_factory=list)  # requested, not known here
     # Stats messages (not part of the chunk counts above, nor of `dropped`)
     stats_due: int = 0  # steps the stats cadence picked
-    stats_sent: int = 0  # handed to zenoh
-    stats_dropped: int = 0  # due but not put: no server, outbox full, stalled, refused, exit
+    stats_sent: int = 0  # put with a subscriber matching (as `sent`)
+    stats_dropped: int = 0  # due but not put (no server or subscriber, outbox full, stalled,
+    #                         refused, exit) or put but unconfirmed when a stall came
     stats_s: float = 0.0  # simulation-thread time computing, encoding, queueing Stats, s
 
     @property
     def dropped(self) -> int:
-        return (self.dropped_no_server + self.dropped_outbox + self.dropped_at_exit
-                + self.dropped_stalled + self.failed)
+        return (self.dropped_no_server + self.dropped_no_subscriber + self.dropped_outbox
+                + self.dropped_at_exit + self.dropped_stalled + self.dropped_before_stall
+                + self.failed)
+
+
+@dataclass(frozen=True)
+class _Tally:
+    """What the sender put and counted as sent, cumulative: chunks, their payload bytes and
+    particles, Stats messages."""
+
+    chunks: int = 0
+    bytes: int = 0
+    particles: int = 0
+    stats: int = 0
+
+    def __add__(self, other: _Tally) -> _Tally:
+        return _Tally(self.chunks + other.chunks, self.bytes + other.bytes,
+                      self.particles + other.particles, self.stats + other.stats)
+
+    def __sub__(self, other: _Tally) -> _Tally:
+        return _Tally(self.chunks - other.chunks, self.bytes - other.bytes,
+                      self.particles - other.particles, self.stats - other.stats)
 
 
 # Data priority and BLOCK: see the module docstring (the outbox is the pressure valve).
 SENDER_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
+# Checkpoints travel in the chunks' queue (data priority), in order behind them; a full queue
+# drops one (never answered: it confirms nothing) rather than blocking the sender.
+CHECKPOINT_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA)
 
 
 class RankPublisher:
@@ -149,8 +216,12 @@ class RankPublisher:
 
     def __init__(self, rank: int, ranks: int, spacing_m: float,
                  bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]],
-                 options: PublishOptions, log: TextIO | None = None):
+                 options: PublishOptions, log: TextIO | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        """`clock` (s, monotonic) times the sender's puts (a stall), probes and checkpoints;
+        tests inject one to stage a stall without waiting for it."""
         self.rank, self.ranks = rank, ranks
+        self.clock = clock
         self.spacing_m, self.bounds_m = spacing_m, bounds_m
         self.options = options
         self.log = log if log is not None else sys.stderr
@@ -172,6 +243,15 @@ class RankPublisher:
         self._stall_s = STALL_FRACTION * BLOCK_TIMEOUT_S
         self._stalled = False
         self._last_probe = 0.0
+        # matching status only (never put through), by outbox kind; the checkpoint querier
+        self._readers: dict[str, zenoh.Publisher] = {}
+        self._querier: zenoh.Querier | None = None
+        # the sender thread's alone: what it put and counted as sent; of that, what a
+        # checkpoint answer confirmed or a stall moved; the checkpoint in flight
+        self._puts = _Tally()
+        self._settled = _Tally()
+        self._checkpoint: tuple[object, _Tally] | None = None  # (replies, puts covered)
+        self._checkpoint_at = -math.inf
 
     # --- start ------------------------------------------------------------------------
     def connect(self, wait_s: float = 0.0) -> bool:
@@ -179,13 +259,14 @@ class RankPublisher:
         reason in no_server_reason, when no server is reachable."""
         opts = copy.copy(self.options.network)
         opts.connect_timeout_s = wait_s
-        try:
-            cfg = make_config(opts, Role.CLIENT)
+        def configure(cfg: zenoh.Config) -> None:
             if opts.config is None:  # an explicit choice; a --config file keeps its own
                 cfg.insert_json5(BLOCK_TIMEOUT_KEY, str(int(BLOCK_TIMEOUT_S * 1e6)))
             self._stall_s = STALL_FRACTION * json.loads(cfg.get_json(BLOCK_TIMEOUT_KEY)) * 1e-6
-            self.session = zenoh.open(cfg)
-        except zenoh.ZError as exc:
+
+        try:
+            self.session = open_session(opts, Role.CLIENT, configure)
+        except (zenoh.ZError, OSError) as exc:  # OSError: unusable credentials (protocol.auth)
             where = ", ".join(opts.connect) or "the default endpoint"
             why = str(exc).split("  at ")[0].strip()  # drop zenoh's source location
             self.no_server_reason = f"no zenoh server reachable at {where} ({why[:160]})"
@@ -229,6 +310,15 @@ class RankPublisher:
         if self.session is not None:
             self._token = self.session.liveliness().declare_token(keys.rank_token(run, self.rank))
             self._spec_sub = self.session.declare_subscriber(keys.spec(run), self._on_spec)
+            self._readers = {CHUNK: self.session.declare_publisher(keys.chunks(run)),
+                             STATS: self.session.declare_publisher(keys.stats(run))}
+            self._querier = self.session.declare_querier(
+                keys.spec(run), timeout=CHECKPOINT_TIMEOUT_S,
+                congestion_control=CHECKPOINT_QOS.congestion, priority=CHECKPOINT_QOS.priority,
+                allowed_destination=zenoh.Locality.REMOTE)
+            # one round trip: the router sends the matching subscribers before its answer
+            for _ in self.session.get(keys.spec(run), timeout=PROBE_TIMEOUT_S):
+                pass
         if spec is not None:  # the server serves the spec; the record notes which one we follow
             self._outbox.put(OutboxItem(keys.spec(run), spec.encode(), CONTROL, publish=False))
         self._thread = threading.Thread(target=self._send_loop, name=f"minority-send-{self.rank}",
@@ -324,6 +414,7 @@ class RankPublisher:
     # --- the sender thread ------------------------------------------------------------------
     def _send_loop(self) -> None:
         while not self._stop.is_set():
+            self._poll_checkpoint()
             item = self._outbox.take(SENDER_POLL_S)
             if item is None:
                 continue
@@ -334,6 +425,7 @@ class RankPublisher:
                     self.stats.recorded += recorded
                     if item.kind == CHUNK:
                         if outcome == "sent":
+                            self._puts += _Tally(1, len(item.payload), item.particles)
                             self.stats.sent += 1
                             self.stats.bytes_sent += len(item.payload)
                             self.stats.particles_sent += item.particles
@@ -342,9 +434,12 @@ class RankPublisher:
                             setattr(self.stats, name, getattr(self.stats, name) + 1)
                     elif item.kind == STATS:
                         if outcome == "sent":
+                            self._puts += _Tally(stats=1)
                             self.stats.stats_sent += 1
                         else:
                             self.stats.stats_dropped += 1
+                if outcome == "sent" and item.kind != CONTROL:
+                    self._start_checkpoint()
             finally:
                 self._outbox.done()
 
@@ -369,34 +464,95 @@ class RankPublisher:
             return 0
 
     def _send(self, item: OutboxItem) -> str:
-        """Put one message; returns "sent", "no_server", "stalled" or "failed"."""
+        """Put one message; returns "sent", "no_server", "no_subscriber" (a chunk or Stats
+        message nothing subscribes to: not put), "stalled" or "failed"."""
         if self.session is None:
             return "no_server"
+        readers = self._readers.get(item.kind)
+        try:
+            if readers is not None and not readers.matching_status.matching:
+                return "no_subscriber"
+        except zenoh.ZError:  # undeclared: the rank is closing
+            return "failed"
         if self._stalled and not self._probe():
             return "stalled"
-        t0 = time.perf_counter()
+        t0 = self.clock()
         try:
             put(self.session, item.key, item.payload, SENDER_QOS)
         except zenoh.ZError:
             return "failed"
-        if time.perf_counter() - t0 >= self._stall_s:  # zenoh gave this put up
-            with self._lock:
-                self.stats.stalls += 1
-            if not self._stalled:
-                print(f"rank {self.rank}: the server stopped reading (a put blocked "
-                      f"{time.perf_counter() - t0:.1f} s); dropping chunks until it answers "
-                      f"again", file=self.log, flush=True)
-            self._stalled = True
-            self._last_probe = time.monotonic()
+        blocked_s = self.clock() - t0
+        if blocked_s >= self._stall_s:  # zenoh gave this put up
+            self._on_stall(blocked_s)
             return "stalled"
         return "sent"
+
+    def _on_stall(self, blocked_s: float) -> None:
+        """A put was given up: count the stall, move the chunks (and Stats) put since the last
+        confirmation from sent to dropped (see the module docstring), stop putting until a
+        probe is answered."""
+        self._poll_checkpoint()  # an answer that came while the put blocked still confirms
+        self._checkpoint = None  # one still in flight confirms nothing now: it is settled
+        window = self._puts - self._settled
+        self._settled = self._puts
+        with self._lock:
+            self.stats.stalls += 1
+            self.stats.sent -= window.chunks
+            self.stats.bytes_sent -= window.bytes
+            self.stats.particles_sent -= window.particles
+            self.stats.dropped_before_stall += window.chunks
+            self.stats.stats_sent -= window.stats
+            self.stats.stats_dropped += window.stats
+        if not self._stalled:
+            print(f"rank {self.rank}: the server stopped reading (a put blocked {blocked_s:.1f} "
+                  f"s); {window.chunks} chunk(s) put since the last confirmation count as "
+                  f"dropped; dropping chunks until it answers again", file=self.log, flush=True)
+        self._stalled = True
+        self._last_probe = self.clock()
+
+    def _start_checkpoint(self) -> None:
+        """After a put: unless one is in flight or the last one is younger than
+        CHECKPOINT_INTERVAL_S, send a spec query behind the puts so far (non-blocking)."""
+        if self._querier is None or self._checkpoint is not None:
+            return
+        now = self.clock()
+        if now - self._checkpoint_at < CHECKPOINT_INTERVAL_S:
+            return
+        self._checkpoint_at = now
+        try:
+            self._checkpoint = (self._querier.get(), self._puts)
+        except zenoh.ZError:  # the session is closing
+            self._checkpoint = None
+
+    def _poll_checkpoint(self) -> None:
+        """Settle the checkpoint in flight if answered: the puts it covers reached the server.
+        One that ends with no answer (timed out, no spec queryable, the link died) or with
+        errors only is forgotten."""
+        if self._checkpoint is None:
+            return
+        replies, covered = self._checkpoint
+        while True:
+            try:
+                reply = replies.try_recv()
+            except zenoh.ZError:  # closed with no answer
+                self._checkpoint = None
+                return
+            if reply is None:  # still in flight
+                return
+            if reply.ok is not None:
+                self._checkpoint = None
+                fresh = covered - self._settled  # >= 0: a stall forgets the one in flight
+                self._settled = covered
+                with self._lock:
+                    self.stats.sent_confirmed += fresh.chunks
+                return
 
     def _probe(self) -> bool:
         """While stalled: at most every PROBE_INTERVAL_S, ask the server for the spec; an
         answer means it reads again."""
-        if time.monotonic() - self._last_probe < PROBE_INTERVAL_S:
+        if self.clock() - self._last_probe < PROBE_INTERVAL_S:
             return False
-        self._last_probe = time.monotonic()
+        self._last_probe = self.clock()
         try:
             replies = self.session.get(keys.spec(self.run), timeout=PROBE_TIMEOUT_S)
             self._stalled = not any(r.ok is not None for r in replies)
@@ -423,7 +579,7 @@ class RankPublisher:
             self._stop.set()
             self._thread.join(timeout=self.options.drain_timeout_s)
         if self.session is not None:
-            for handle in (self._spec_sub, self._token):
+            for handle in (self._spec_sub, self._token, self._querier, *self._readers.values()):
                 if handle is not None:
                     handle.undeclare()
             self.session.close()  # returns once a blocked put gives up (zenoh's bound)

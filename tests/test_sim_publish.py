@@ -10,6 +10,7 @@ import io
 import json
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -142,7 +143,8 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
         assert summary.spec_version == 2 and summary.run == RUN
         p = summary.publish
         assert (p["scheduled"], p["sent"], p["dropped"]) == (3, 3, 0)  # steps 0, 20, 40
-        assert wait_until(lambda: chunks.received == 3 and events.received == 2)
+        # the rank's start and done, then the server's end of the run
+        assert wait_until(lambda: chunks.received == 3 and events.received == 3)
         # the server renders the newest complete step (older ones may be skipped)
         assert wait_until(lambda: daemon.summary()["steps_rendered"]
                           + daemon.summary()["steps_skipped"] == 3)
@@ -157,7 +159,9 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
             assert np.array_equal(sorted_rows(c.positions), sorted_rows(inside))
         assert p["particles_sent"] == sum(c.count for c in got.values()) < p["particles_total"]
         assert p["bytes_sent"] == sum(len(c.encode()) for c in got.values())
-        start, done = (decode_as(events.get(1).payload, Event) for _ in range(2))
+        start, done, end = (decode_as(events.get(1).payload, Event) for _ in range(3))
+        assert end.kind == EventKind.RUN_END and end.rank == -1
+        assert end.detail["chunks"] == 3 and end.detail["lost_in_transit"] == 0
         assert start.kind == EventKind.RUN_START and start.detail["spec_version"] == 2
         assert start.detail["scene"] == "tiny" and start.detail["ranks"] == 1
         assert done.kind == EventKind.RANK_DONE and done.rank == 0
@@ -239,6 +243,115 @@ def test_a_subscriber_that_never_reads_costs_counted_drops_not_time(endpoint, tm
         stuck.undeclare()
         queryable.undeclare()
         server.close()
+
+
+def wait_for_subscriber(server, key: str) -> None:
+    """Until the server (the router) knows a subscriber of `key` (a client's declaration has
+    crossed the link), so a rank that connects next sees it."""
+    probe = server.declare_publisher(key)
+    try:
+        assert wait_until(lambda: probe.matching_status.matching)
+    finally:
+        probe.undeclare()
+
+
+def test_chunks_nobody_subscribes_to_count_as_dropped_not_sent(server, client_factory,
+                                                               endpoint, tmp_path):
+    """A server listens but nothing subscribes to the run's chunks or stats (no render server,
+    no recorder): zenoh would take the puts without an error and deliver them nowhere. They
+    are not put; they count as dropped (no subscriber), not sent, in the rank's rank_done."""
+    observer = client_factory()
+    events = Inbox(observer, keys.event(RUN))  # not a chunk or stats subscriber
+    wait_for_subscriber(server, keys.event(RUN))
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps(spec_dict(every_steps=10)))
+    summary = run_ranks(config(endpoint, tmp_path, 100, spec_file=spec_file),
+                        stream=io.StringIO())
+    p = summary.publish
+    assert p["scheduled"] == 11  # steps 0, 10, ..., 100
+    assert p["sent"] == p["sent_confirmed"] == p["bytes_sent"] == p["particles_sent"] == 0
+    assert p["dropped"] == p["dropped_no_subscriber"] == 11
+    assert p["stats_due"] == p["stats_dropped"] > 0 and p["stats_sent"] == 0
+    assert wait_until(lambda: events.received == 2)
+    start, done = (decode_as(events.get(1).payload, Event) for _ in range(2))
+    assert (start.kind, done.kind) == (EventKind.RUN_START, EventKind.RANK_DONE)
+    assert done.detail["sent"] == 0
+    assert done.detail["dropped"] == done.detail["dropped_no_subscriber"] == 11
+
+
+def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_comes(
+        server, client_factory, endpoint, monkeypatch):
+    """A staged stall, clock and put injected (no waiting for zenoh's block timeout): step 0
+    is put and confirmed (the server answers a checkpoint); then the server stops answering;
+    steps 1 and 2 are put (they do arrive, but nothing confirms it); zenoh gives up step 3
+    after the block timeout: steps 1 and 2 move from sent to dropped_before_stall (an upper
+    bound), step 3 and step 4 (not put while stalled) are dropped_stalled; the server
+    answers the probe again and step 5 is sent and confirmed. `sent` never exceeds what the
+    subscriber received."""
+    from sim import publish
+
+    spec = Spec.from_dict(spec_dict(every_steps=1))
+    answering = threading.Event()
+    answering.set()
+
+    def on_query(query):  # not answered: zenoh ends the query with no reply
+        if answering.is_set():
+            query.reply(keys.spec(RUN), bytes(spec.encode()))
+
+    queryable = server.declare_queryable(keys.spec(RUN), on_query)
+    observer = client_factory()
+    chunks, events = Inbox(observer, keys.chunks(RUN)), Inbox(observer, keys.event(RUN))
+    wait_for_subscriber(server, keys.chunks(RUN))
+    offset_s = [0.0]  # added to the publisher's clock
+    real_put, given_up = publish.put, keys.chunk(RUN, 3, 0)
+
+    def put(session, key, payload, qos):
+        if key == given_up:  # the put zenoh gives up after the block timeout: not delivered
+            offset_s[0] += publish.BLOCK_TIMEOUT_S
+            return
+        real_put(session, key, payload, qos)
+
+    monkeypatch.setattr(publish, "put", put)
+    log = io.StringIO()
+    pub = publish.RankPublisher(
+        0, 1, 0.005, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        PublishOptions(network=NetworkOptions(connect=[endpoint]), stats_every_s=0.0), log,
+        clock=lambda: time.monotonic() + offset_s[0])
+    ps = moved_particles()
+    try:
+        assert pub.connect(5.0)
+        pub.start(RUN, spec)
+        pub.publish(0, 0.0, ps)
+        assert wait_until(lambda: pub.stats.sent_confirmed == 1)
+        answering.clear()
+        for step in (1, 2):
+            pub.publish(step, step * 1e-4, ps)
+        assert wait_until(lambda: chunks.received == 3 and pub.stats.sent == 3)
+        pub.publish(3, 3e-4, ps)
+        assert wait_until(lambda: pub.stats.stalls == 1)
+        pub.publish(4, 4e-4, ps)  # stalled, no probe due (or one not answered): not put
+        assert wait_until(lambda: pub.stats.dropped_stalled == 2)
+        s = pub.stats
+        assert (s.sent, s.sent_confirmed, s.dropped_before_stall) == (1, 1, 2)
+        answering.set()
+        offset_s[0] += publish.PROBE_INTERVAL_S  # a probe is due: answered, the link flows
+        pub.publish(5, 5e-4, ps)
+        assert wait_until(lambda: chunks.received == 4 and pub.stats.sent_confirmed == 2)
+    finally:
+        stats = pub.close()
+        queryable.undeclare()
+    got = {c.step: c for c in (decode_as(chunks.get(1).payload, Chunk) for _ in range(4))}
+    assert sorted(got) == [0, 1, 2, 5]  # 1 and 2 did arrive: dropped_before_stall bounds
+    assert (stats.scheduled, stats.sent, stats.sent_confirmed) == (6, 2, 2)
+    assert (stats.dropped_before_stall, stats.dropped_stalled, stats.dropped) == (2, 2, 4)
+    assert stats.bytes_sent == sum(len(got[k].encode()) for k in (0, 5))
+    assert stats.particles_sent == got[0].count + got[5].count
+    assert "2 chunk(s) put since the last confirmation count as dropped" in log.getvalue()
+    assert wait_until(lambda: events.received == 1)
+    done = decode_as(events.get(1).payload, Event)
+    assert done.kind == EventKind.RANK_DONE
+    assert done.detail["sent"] == 2 <= len(got)  # what the server waits for, it has
+    assert done.detail["dropped_before_stall"] == 2 and done.detail["dropped"] == 4
 
 
 @pytest.mark.parametrize("name", sorted(SIM_FIELDS))
@@ -426,6 +539,8 @@ def test_every_s_cadences_and_stats_follow_the_steps_times(server, client_factor
     assert times[-1] > 0.012 and 8 <= len(due) < steps // 3 and len(stats_due) == 7
     observer = client_factory()
     chunks, stats = Inbox(observer, keys.chunks(RUN)), Inbox(observer, keys.stats(RUN))
+    wait_for_subscriber(server, keys.chunks(RUN))
+    wait_for_subscriber(server, keys.stats(RUN))
     queryable = server.declare_queryable(keys.spec(RUN), lambda q: q.reply(
         keys.spec(RUN), bytes(spec.encode())))
     try:

@@ -108,6 +108,7 @@ class RenderServer:
     opens at start, the next with the first chunk or rank token after the last has ended)."""
 
     def __init__(self, session: zenoh.Session, options: ServerOptions):
+        """Raises OSError when the first run's log cannot be opened."""
         self.session = session
         self.options = options
         self.spec = options.spec
@@ -133,7 +134,12 @@ class RenderServer:
                   flush=True)
         warm_up()  # compile the kernels now, not on the first step
         self._log = LogQueue() if options.record else None
-        self._open_instance()
+        try:
+            self._open_instance()
+        except OSError:
+            if self._log is not None:
+                self._log.stop()
+            raise
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
                             options.inbox_bytes)
         self._side = Inbox(session, [keys.event(self.run), keys.stats(self.run)], SIDE_CAPACITY)
@@ -175,6 +181,8 @@ class RenderServer:
             try:
                 writer = open_writer(log_path, self.run, name)
             except OSError as exc:
+                if self._seq == 0:  # at start: the caller says it cannot start
+                    raise
                 self._error(f"cannot open the log {log_path}: {exc}; this run is not logged")
         self._seq += 1
         inst = RunInstance(self._seq, name, o.out_dir / name, writer,

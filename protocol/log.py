@@ -293,8 +293,8 @@ class LogRecord:
             return decode_as(self.data, Chunk)
         try:
             obj = json.loads(self.data)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ProtocolError(f"{self.topic}: stored JSON is invalid ({exc})") from None
+        except (ValueError, RecursionError) as exc:  # bad UTF-8, JSON, huge integers, nesting
+            raise ProtocolError(f"{self.topic}: stored JSON is invalid ({str(exc)[:200]})") from None
         return cls.from_json(obj, self.publish_ns)
 
 

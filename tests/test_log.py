@@ -9,7 +9,7 @@ from conftest import make_chunk, sample_messages
 from mcap.reader import make_reader
 from mcap.writer import CompressionType
 
-from protocol import Chunk, Frame, Timing
+from protocol import Chunk, Frame, ProtocolError, Timing
 from protocol.log import (
     REJECTED_TOPIC,
     LogDamagedWarning,
@@ -171,3 +171,12 @@ def test_times_outside_mcap_range_never_reach_the_writer(tmp_path):
         warnings.simplefilter("error")  # complete, undamaged
         records = list(read_log(path))
     assert [r.topic for r in records] == [REJECTED_TOPIC, "minority/test-run/chunk"]
+
+
+@pytest.mark.parametrize("data", [b"\xff", b"[" * 100_000, b'{"run": ' + b"9" * 5000 + b"}"])
+def test_a_stored_json_record_that_cannot_be_parsed_is_a_protocol_error(data):
+    from protocol.log import LogRecord
+
+    record = LogRecord("minority/r/timing", 0, 0, "minority.Timing", data)
+    with pytest.raises(ProtocolError, match="stored JSON is invalid"):
+        record.decode()

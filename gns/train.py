@@ -12,9 +12,12 @@ validation, rollout and evaluation use) and train_state_dict the optimizer's (fo
 from __future__ import annotations
 
 import math
+import pickle
 import sys
 import time
-from dataclasses import asdict, dataclass
+import warnings
+import zipfile
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -66,20 +69,92 @@ def combined_stats(meta: dict, noise_std: float) -> dict:
     return stats
 
 
-def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[GNS, dict]:
-    ckpt = torch.load(path, map_location=device, weights_only=True)
+CHECKPOINT_KEYS = ("format", "model_config", "stats", "state_dict")  # what every one holds
+ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format: a zip archive
+PICKLE_MAGIC = b"\x80"  # the legacy torch.save format and plain pickles: the PROTO opcode
+
+
+class CheckpointError(ValueError):
+    """A file is not a readable GNS checkpoint; the message names the file and what is wrong."""
+
+
+TORCH_APPEALS = (" (Could this error message be improved?", " This is an internal miniz error")
+
+
+def _gist(exc: BaseException, limit: int = 200) -> str:
+    """A torch or pickle error on one line, without PyTorch's appeals, at most `limit` chars."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    for appeal in TORCH_APPEALS:
+        text = text.split(appeal)[0]
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _unpickler_reason(exc: pickle.UnpicklingError) -> str:
+    """What torch's weights-only unpickler refused, e.g. 'Unsupported global: GLOBAL print
+    was not an allowed global by default'."""
+    after = str(exc).partition("WeightsUnpickler error:")[2].strip().splitlines()
+    return after[0].split(". Please")[0].strip()[:120] if after else _gist(exc)
+
+
+def read_checkpoint(path: str | Path, device: str = "cpu") -> dict:
+    """The checkpoint dict at `path`, loaded with `weights_only=True` (tensors and plain
+    values only: a pickle of other objects is refused, never run) and checked to hold
+    CHECKPOINT_KEYS; CheckpointError otherwise (OSError when the file cannot be read)."""
+    expected = f"expected a {CHECKPOINT_FORMAT} file from `minority oracle train`"
+    with open(path, "rb") as f:  # a missing file stays an OSError (the CLI's status 1)
+        head = f.read(len(ZIP_MAGIC))
+    if not head:
+        raise CheckpointError(f"{path}: empty file; {expected}")
+    try:
+        with warnings.catch_warnings():  # torch warns of pickle protocols it did not write
+            warnings.simplefilter("ignore", UserWarning)
+            ckpt = torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if not head.startswith((ZIP_MAGIC, PICKLE_MAGIC)):
+            raise CheckpointError(f"{path}: not a PyTorch checkpoint (it starts with bytes "
+                                  f"{head.hex(' ')}); {expected}") from None
+        raise CheckpointError(f"{path}: refused by the weights-only loader "
+                              f"({_unpickler_reason(exc)}): a pickle of more than tensors and "
+                              f"plain values, or not written by torch.save; nothing in it was "
+                              f"run; {expected}") from None
+    except (EOFError, RuntimeError, ValueError, zipfile.BadZipFile, UnicodeDecodeError,
+            KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise CheckpointError(f"{path}: not a readable PyTorch checkpoint "
+                              f"({type(exc).__name__}: {_gist(exc)}); {expected}") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path}: holds a {type(ckpt).__name__}, not a checkpoint dict; "
+                              f"{expected}")
     if ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a {CHECKPOINT_FORMAT} checkpoint")
-    model = GNS(ModelConfig(**ckpt["model_config"]), ckpt["stats"]).to(device)
-    model.load_state_dict(ckpt["state_dict"])
+        raise CheckpointError(f"{path}: format {str(ckpt.get('format'))[:60]!r}, not "
+                              f"{CHECKPOINT_FORMAT!r}; {expected}")
+    missing = [k for k in CHECKPOINT_KEYS if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}; {expected}")
+    return ckpt
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[GNS, dict]:
+    """(model in eval mode, checkpoint dict); CheckpointError when the file is not a
+    checkpoint or its weights do not fit its model config."""
+    ckpt = read_checkpoint(path, device)
+    config, names = ckpt["model_config"], {f.name for f in fields(ModelConfig)}
+    if (not isinstance(config, dict) or not set(config) <= names
+            or not all(type(v) is int and v >= 0 for v in config.values())):
+        raise CheckpointError(f"{path}: model_config {str(config)[:120]} is not a set of "
+                              f"non-negative integers among {sorted(names)}")
+    try:
+        model = GNS(ModelConfig(**config), ckpt["stats"]).to(device)
+        model.load_state_dict(ckpt["state_dict"])
+    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{path}: its weights and statistics do not make its model "
+                              f"({type(exc).__name__}: {_gist(exc)})") from None
     return model.eval(), ckpt
 
 
 def ship(src: str | Path, dst: str | Path) -> Path:
-    """Copy a checkpoint without its optimizer state (what the repository ships)."""
-    ckpt = torch.load(src, map_location="cpu", weights_only=True)
-    if ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{src}: not a {CHECKPOINT_FORMAT} checkpoint")
+    """Copy a checkpoint without its optimizer state (what the repository ships); only one
+    whose weights make its model (load_checkpoint) is copied."""
+    _, ckpt = load_checkpoint(src)
     ckpt.pop("optimizer", None)
     ckpt.pop("train_state_dict", None)
     dst = Path(dst)

@@ -7,6 +7,12 @@ import sys
 from pathlib import Path
 
 DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
+BAD_INPUT, FAILED = 2, 1  # exit statuses: a bad file or argument; a failure at run time
+
+
+def _fail(step: str, exc: Exception, status: int) -> int:
+    print(f"minority oracle {step}: error: {exc}", file=sys.stderr)
+    return status
 
 
 def _cmd_dataset(args: argparse.Namespace) -> int:
@@ -37,7 +43,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     from gns.dataset import DatasetError
     from gns.model import ModelConfig
-    from gns.train import TrainConfig, train
+    from gns.train import CheckpointError, TrainConfig, train
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -53,6 +59,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     deepen_to=args.deepen, device=args.device)
+    except CheckpointError as exc:  # --resume or --init
+        return _fail("train", exc, BAD_INPUT)
     except (DatasetError, OSError, ValueError) as exc:
         print(f"minority oracle train: error: {exc}", file=sys.stderr)
         return 1
@@ -65,8 +73,9 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 
     from gns.rollout import RolloutError
     from gns.runtime import tune_allocator
+    from gns.train import CheckpointError
     from minority.warmstart import predict_scene
-    from sim.scene import scene_path
+    from sim.scene import SceneError, scene_path
 
     tune_allocator()
     if args.threads:
@@ -75,6 +84,8 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         p = predict_scene(args.checkpoint, scene_path(args.scene), args.duration, args.start,
                           args.device, progress=True, log=sys.stderr)
         h5 = p.write(args.out, args.vtk_every)
+    except (CheckpointError, SceneError) as exc:
+        return _fail("rollout", exc, BAD_INPUT)
     except (RolloutError, ValueError, OSError, KeyError) as exc:
         print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
         return 1
@@ -135,7 +146,7 @@ def _cmd_preview(args: argparse.Namespace) -> int:
 
 def _load_for_cpu(args: argparse.Namespace):
     """(model, checkpoint) of args.checkpoint, with the CPU allocator tuned and
-    args.threads torch threads (raises OSError/ValueError/KeyError as load_checkpoint)."""
+    args.threads torch threads (raises CheckpointError or OSError as load_checkpoint)."""
     import torch
 
     from gns.runtime import tune_allocator
@@ -160,10 +171,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from gns.dataset import DatasetError
     from gns.evaluate import evaluate
+    from gns.train import CheckpointError
 
     try:
         model, ckpt = _load_for_cpu(args)
         rows = evaluate(model, args.dataset, args.split, names=args.scene or None)
+    except CheckpointError as exc:
+        return _fail("evaluate", exc, BAD_INPUT)
     except (DatasetError, OSError, ValueError, KeyError) as exc:
         print(f"minority oracle evaluate: error: {exc}", file=sys.stderr)
         return 1
@@ -192,6 +206,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
     from gns.dataset import DatasetError, load_split
     from gns.diagnose import balance
+    from gns.train import CheckpointError
 
     try:
         model, _ = _load_for_cpu(args)
@@ -207,6 +222,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                       f"{row['frames'][1] - 1} {row['region']:>22s}: predicted "
                       f"{row['pred_m']:+.2e} run {row['true_m']:+.2e} ratio {ratio}",
                       file=sys.stderr, flush=True)
+    except CheckpointError as exc:
+        return _fail("diagnose", exc, BAD_INPUT)
     except (DatasetError, OSError, ValueError, KeyError) as exc:
         print(f"minority oracle diagnose: error: {exc}", file=sys.stderr)
         return 1
@@ -214,10 +231,12 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
-    from gns.train import ship
+    from gns.train import CheckpointError, ship
 
     try:
         out = ship(args.checkpoint, args.out)
+    except CheckpointError as exc:
+        return _fail("ship", exc, BAD_INPUT)
     except (OSError, ValueError, RuntimeError) as exc:
         print(f"minority oracle ship: error: {exc}", file=sys.stderr)
         return 1

@@ -31,6 +31,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import zenoh
 
+from minority.report import LogNote, Notice, notice_on_stderr, read_log_noting, say_notes
 from protocol import keys
 from protocol.errors import ProtocolError
 from protocol.log import read_log
@@ -75,11 +76,13 @@ class ReplaySummary:
     late: int = 0  # chunks of a step already released, or duplicates
     out: Path | None = None
     vtk: Path | None = None
+    log_notes: list[LogNote] = field(default_factory=list)  # truncated or damaged: read so far
 
     def text(self) -> str:
         lines = [f"run {self.run}: {self.steps} steps replayed with {self.spec_source}, "
                  f"{self.frames} frames"
                  + (f" in {self.out}" if self.out else "")]
+        lines += [n.line() for n in self.log_notes]
         if self.vtk:
             lines.append(f"VTK series: {self.vtk}")
         if self.incomplete:
@@ -100,28 +103,39 @@ class ReplaySummary:
         return "\n".join(lines)
 
 
-def log_specs(path: Path) -> list[Spec]:
-    """Every spec recorded in the log, in file order."""
-    return [r.decode() for r in read_log(path, ["minority/*/spec"])]
+def log_specs(path: Path, notes: list[LogNote] | None = None) -> list[Spec]:
+    """Every spec recorded in the log, in file order (with `notes`: a truncated or damaged
+    log is noted there rather than warned of)."""
+    records = (read_log(path, ["minority/*/spec"]) if notes is None
+               else read_log_noting(path, notes, ["minority/*/spec"]))
+    return [r.decode() for r in records]
 
 
-def log_run(path: Path, specs: list[Spec], run: str | None = None) -> str:
-    """The run to replay: `run`, else that of the log's last spec, else of its first chunk."""
+def log_run(path: Path, specs: list[Spec], run: str | None = None,
+            notes: list[LogNote] | None = None) -> str:
+    """The run to replay: `run`, else that of the log's last spec, else of its first chunk
+    (with `notes`: a truncated or damaged log is noted there rather than warned of)."""
     if run is not None:
         return run
     if specs:
         return specs[-1].run
-    first = next(read_log(path, ["minority/*/chunk"]), None)
+    topics = ["minority/*/chunk"]
+    records = read_log(path, topics) if notes is None else read_log_noting(path, notes, topics)
+    first = next(records, None)
     if first is None:
         raise ReplayError(f"{path}: no chunks and no spec recorded (is it a minority MCAP log?)")
     return keys.parse(first.topic).run
 
 
-def recorded_steps(path: Path, run: str, assembler: StepAssembler
+def recorded_steps(path: Path, run: str, assembler: StepAssembler,
+                   notes: list[LogNote] | None = None
                    ) -> Iterator[tuple[AssembledStep, Spec | None]]:
-    """The run's steps, assembled in log order, each with the recorded spec in force then."""
+    """The run's steps, assembled in log order, each with the recorded spec in force then
+    (with `notes`: a truncated or damaged log is noted there rather than warned of)."""
     spec = None
-    for record in read_log(path, [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
+    topics = [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]
+    records = read_log(path, topics) if notes is None else read_log_noting(path, notes, topics)
+    for record in records:
         message = record.decode()
         if isinstance(message, Spec):
             spec = message
@@ -215,11 +229,26 @@ def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list
 
 def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
            vtk: Path | None = None, run: str | None = None, shadows: bool = False,
-           progress: Callable[[str], None] | None = None) -> ReplaySummary:
+           progress: Callable[[str], None] | None = None,
+           notice: Notice | None = None) -> ReplaySummary:
     """Re-render the log at `path` into out/{view}/{step:06d}.png (out None: render nothing)
-    with `spec` (None: the log's last spec), and/or export its steps to a VTK series in `vtk`."""
-    specs = log_specs(path)
-    run = log_run(path, specs, run)
+    with `spec` (None: the log's last spec), and/or export its steps to a VTK series in `vtk`.
+    A truncated or damaged log replays up to its last complete chunk, said once to `notice`
+    (default: a line on stderr) and in the summary."""
+    notes: list[LogNote] = []
+    try:
+        summary = _replay(path, spec, out, vtk, run, shadows, progress, notes)
+    finally:
+        say_notes(notes, notice or notice_on_stderr("minority replay"))
+    summary.log_notes = notes
+    return summary
+
+
+def _replay(path: Path, spec: Spec | None, out: Path | None, vtk: Path | None, run: str | None,
+            shadows: bool, progress: Callable[[str], None] | None,
+            notes: list[LogNote]) -> ReplaySummary:
+    specs = log_specs(path, notes)
+    run = log_run(path, specs, run, notes)
     own = [s for s in specs if s.run == run]
     if spec is None and out is not None and not own:
         raise ReplayError(f"{path}: no spec of run {run!r} is recorded; pass --spec")
@@ -236,7 +265,7 @@ def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
     assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
     canvases: dict = {}
     seen: list[tuple[int, float, float | None]] = []
-    for step, recorded in recorded_steps(path, run, assembler):
+    for step, recorded in recorded_steps(path, run, assembler, notes):
         summary.steps += 1
         seen.append((step.step, step.time_s, step.prev_time_s))
         if step.incomplete:
@@ -345,16 +374,29 @@ class PublishSummary:
 
 
 def publish(path: Path, session: zenoh.Session, rate: float = 1.0, run: str | None = None,
-            wait_s: float = 10.0, stop: threading.Event | None = None) -> PublishSummary:
+            wait_s: float = 10.0, stop: threading.Event | None = None,
+            notice: Notice | None = None) -> PublishSummary:
     """Re-publish the run's recorded chunks and specs at the recorded pacing (log times
     divided by `rate`; 0: as fast as possible) with the simulation's QoS. Waits up to wait_s
-    for a subscriber of the run's chunks (a render server) before the first chunk."""
-    run = log_run(path, log_specs(path), run)
+    for a subscriber of the run's chunks (a render server) before the first chunk. A
+    truncated or damaged log is re-published up to its last complete chunk and said once to
+    `notice` (default: a line on stderr)."""
+    notes: list[LogNote] = []
+    try:
+        return _publish(path, session, rate, run, wait_s, stop, notes)
+    finally:
+        say_notes(notes, notice or notice_on_stderr("minority replay"))
+
+
+def _publish(path: Path, session: zenoh.Session, rate: float, run: str | None, wait_s: float,
+             stop: threading.Event | None, notes: list[LogNote]) -> PublishSummary:
+    run = log_run(path, log_specs(path, notes), run, notes)
     stop = stop or threading.Event()
     summary = PublishSummary(run)
     start_wall = start_log = None
     matched = False
-    for record in read_log(path, [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
+    for record in read_log_noting(path, notes,
+                                  [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
         if start_log is None:
             start_wall, start_log = time.monotonic(), record.log_ns
         if rate > 0:

@@ -17,12 +17,22 @@ none of these is in the log the report says so instead of guessing.
 from __future__ import annotations
 
 import math
+import sys
+import warnings
 from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol.errors import ProtocolError, SpecError
-from protocol.log import MCAP_MAGIC, REJECTED_TOPIC, read_log
+from protocol.log import (
+    MCAP_MAGIC,
+    REJECTED_TOPIC,
+    LogDamagedWarning,
+    LogRecord,
+    LogTruncatedWarning,
+    read_log,
+)
 from protocol.messages import ChunkMeta, Event, EventKind, Timing
 from protocol.spec import Spec
 from protocol.wire import MessageKind, decode
@@ -36,6 +46,62 @@ SERVER_COUNTS = ("steps_rendered", "steps_skipped", "timed_out", "evicted", "lat
 
 class ReportError(ValueError):
     """Bad input (no such file, not MCAP, nothing to report): the CLI exits 2."""
+
+
+# --- logs that did not end cleanly ------------------------------------------------------
+@dataclass(frozen=True)
+class LogNote:
+    """What read_log said of a log that does not end cleanly: "truncated" (no MCAP footer:
+    its writer was killed or stopped) or "damaged" (an unreadable record inside). Either way
+    the messages of its complete chunks before that point were read, and only those."""
+
+    kind: str  # "truncated" or "damaged"
+    detail: str  # read_log's warning, on one line
+
+    def line(self) -> str:
+        if self.kind == "damaged":
+            return (f"log damaged: {self.detail}; only the messages of the complete chunks "
+                    "before it were used")
+        return f"log truncated: {self.detail}"
+
+
+Notice = Callable[[str], None]  # where one-line warnings go (the CLI: stderr)
+
+
+def notice_on_stderr(command: str) -> Notice:
+    """A Notice printing "{command}: warning: {line}" on stderr."""
+    def say(line: str) -> None:
+        print(f"{command}: warning: {line}", file=sys.stderr, flush=True)
+    return say
+
+
+def read_log_noting(path: str | Path, notes: list[LogNote],
+                    topics: Iterable[str] | None = None) -> Iterator[LogRecord]:
+    """read_log, with its LogTruncatedWarning or LogDamagedWarning added to `notes` (once
+    per distinct note) instead of shown; any other warning passes on as it was."""
+    records = read_log(path, topics)
+    while True:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", LogTruncatedWarning)
+            warnings.simplefilter("always", LogDamagedWarning)
+            record = next(records, None)
+        for w in caught:
+            if issubclass(w.category, (LogTruncatedWarning, LogDamagedWarning)):
+                kind = "damaged" if issubclass(w.category, LogDamagedWarning) else "truncated"
+                note = LogNote(kind, " ".join(str(w.message).split()))
+                if note not in notes:
+                    notes.append(note)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
+                                       source=w.source)
+        if record is None:
+            return
+        yield record
+
+
+def say_notes(notes: list[LogNote], notice: Notice) -> None:
+    for note in notes:
+        notice(note.line())
 
 
 @dataclass(frozen=True)
@@ -64,6 +130,7 @@ class RunLog:
     spec: Spec | None  # the last spec of the run in the log
     rejected: int = 0  # records on minority/_rejected (every run)
     undecodable: int = 0  # stored records of this run that did not decode
+    notes: tuple[LogNote, ...] = ()  # the log is truncated or damaged: what was read of it
 
 
 @dataclass
@@ -85,9 +152,11 @@ def chunk_info(data: bytes) -> ChunkInfo:
                      m.prev_time_s)
 
 
-def load_run(path: str | Path, run: str | None = None) -> RunLog:
+def load_run(path: str | Path, run: str | None = None, notice: Notice | None = None) -> RunLog:
     """Read one run of an MCAP log (the only run with timing records unless `run` names one).
-    Raises ReportError on bad input, OSError when the file cannot be read."""
+    Raises ReportError on bad input, OSError when the file cannot be read. A truncated or
+    damaged log is read up to its last complete chunk, said once to `notice` (default: a
+    line on stderr) and recorded in RunLog.notes."""
     path = Path(path)
     if not path.exists():
         raise ReportError(f"{path}: no such file")
@@ -96,9 +165,17 @@ def load_run(path: str | Path, run: str | None = None) -> RunLog:
     with open(path, "rb") as f:
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise ReportError(f"{path}: not an MCAP file (no MCAP magic at its start)")
+    notes: list[LogNote] = []
+    try:
+        return _load_run(path, run, notes)
+    finally:
+        say_notes(notes, notice or notice_on_stderr("minority report"))
+
+
+def _load_run(path: Path, run: str | None, notes: list[LogNote]) -> RunLog:
     accs: dict[str, _Acc] = defaultdict(_Acc)
     rejected = 0
-    for rec in read_log(path):
+    for rec in read_log_noting(path, notes):
         if rec.topic == REJECTED_TOPIC:
             rejected += 1
             continue
@@ -134,7 +211,7 @@ def load_run(path: str | Path, run: str | None = None) -> RunLog:
                           f"(runs in the log: {', '.join(runs) or 'none'})")
     a = accs[run]
     return RunLog(path, run, runs, a.timings, a.events, a.chunks, dict(a.frames), a.spec,
-                  rejected, a.undecodable)
+                  rejected, a.undecodable, tuple(notes))
 
 
 # --- timing -----------------------------------------------------------------------------
@@ -336,11 +413,14 @@ def markdown(log: RunLog, plot_paths: list[Path] = ()) -> str:
            f"Log `{log.path}`: {len(log.timings)} timing, {len(log.chunks)} chunk, "
            f"{sum(log.frames.values())} frame and {len(log.events)} event records"
            + (f"; {log.rejected} rejected" if log.rejected else "")
-           + (f"; {log.undecodable} undecodable" if log.undecodable else "") + ".", "",
-           "## Time per in situ step", "",
-           f"Mean over {p.count} rendered steps, views: {len(t.per_view)}. Receive and setup "
-           "are once per step, render is the sum of the step's views.", "",
-           "| | mean per in situ step (ms) | share |", "|---|---|---|"]
+           + (f"; {log.undecodable} undecodable" if log.undecodable else "") + ".", ""]
+    out += [f"**Log {n.kind}**: {n.detail}. The tables and plots below cover those messages "
+            "only." for n in log.notes]
+    out += [""] if log.notes else []
+    out += ["## Time per in situ step", "",
+            f"Mean over {p.count} rendered steps, views: {len(t.per_view)}. Receive and setup "
+            "are once per step, render is the sum of the step's views.", "",
+            "| | mean per in situ step (ms) | share |", "|---|---|---|"]
     out += [f"| {part} | {_ms(getattr(p, f'{part}_s'))} | {_pct(p.share(part))} |"
             for part in ("receive", "setup", "render")]
     out += [f"| total | {_ms(p.total_s)} | 100.0 % |", "", "## Per view", "",
@@ -437,8 +517,9 @@ def plots(log: RunLog, out_dir: str | Path) -> list[Path]:
     def axes(fig, ylabel: str, title: str):
         FigureCanvasAgg(fig)
         ax = fig.add_subplot()
+        cut = "".join(f" (log {n.kind})" for n in log.notes)
         ax.set(xlabel="simulation step (rendered steps, in order)", ylabel=ylabel,
-               title=f"run {log.run}: {title}", xticks=ticks, xticklabels=[steps[i] for i in ticks])
+               title=f"run {log.run}: {title}{cut}", xticks=ticks, xticklabels=[steps[i] for i in ticks])
         return ax
 
     fig = Figure(figsize=(8, 4.5), dpi=100)
@@ -467,8 +548,9 @@ def plots(log: RunLog, out_dir: str | Path) -> list[Path]:
 
 
 def report(path: str | Path, out_dir: str | Path | None = None, make_plots: bool = True,
-           run: str | None = None) -> str:
-    """Load a log, write the plots (beside the log unless `out_dir`), return the markdown."""
-    log = load_run(path, run)
+           run: str | None = None, notice: Notice | None = None) -> str:
+    """Load a log, write the plots (beside the log unless `out_dir`), return the markdown
+    (which says so when the log is truncated or damaged; so does a line to `notice`)."""
+    log = load_run(path, run, notice)
     written = plots(log, out_dir if out_dir is not None else log.path.parent) if make_plots else []
     return markdown(log, written)

@@ -19,8 +19,14 @@ from pathlib import Path
 import numpy as np
 
 from gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
-from minority.report import chunk_info
-from protocol.log import read_log
+from minority.report import (
+    LogNote,
+    Notice,
+    chunk_info,
+    notice_on_stderr,
+    read_log_noting,
+    say_notes,
+)
 from protocol.messages import SPEED_EDGES_M_S, Frame, Stats
 from protocol.spec import Spec
 
@@ -47,6 +53,7 @@ class RunRecord:
     chunk_bytes: int = 0
     chunk_steps: dict[int, tuple[float, int]] = field(default_factory=dict)  # step: (t, B/p)
     incomplete_stats_steps: int = 0
+    log_notes: tuple[LogNote, ...] = ()  # the log is truncated or damaged: what was read of it
 
 
 def quantile_from_histogram(hist: np.ndarray, q: float) -> np.ndarray:
@@ -72,13 +79,22 @@ def moving_count(hist: np.ndarray, threshold_m_s: float) -> np.ndarray:
     return hist[:, lower >= threshold_m_s].sum(axis=1)
 
 
-def load_run(path: str | Path, run: str | None = None) -> RunRecord:
+def load_run(path: str | Path, run: str | None = None, notice: Notice | None = None) -> RunRecord:
     """The stats, frames and chunk sizes of one run of a log (`run` None: every record, for a
-    log that holds one run)."""
+    log that holds one run). A truncated or damaged log is read up to its last complete
+    chunk, said once to `notice` (default: a line on stderr) and kept in log_notes."""
+    notes: list[LogNote] = []
+    try:
+        return _load_run(path, run, notes)
+    finally:
+        say_notes(notes, notice or notice_on_stderr("minority report score"))
+
+
+def _load_run(path: str | Path, run: str | None, notes: list[LogNote]) -> RunRecord:
     by_step: dict[int, list[Stats]] = defaultdict(list)
     frames: dict[str, list[float]] = defaultdict(list)
     chunk_bytes, chunk_steps = 0, {}
-    for rec in read_log(path):
+    for rec in read_log_noting(path, notes):
         parts = rec.topic.split("/")
         if run is not None and (len(parts) < 2 or parts[1] != run):
             continue
@@ -113,7 +129,7 @@ def load_run(path: str | Path, run: str | None = None) -> RunRecord:
         particles=int(count.max()),
         max_displacement_m=max(s.max_displacement_m for r in rows for s in r),
         frame_times_s=dict(frames), chunk_bytes=chunk_bytes, chunk_steps=chunk_steps,
-        incomplete_stats_steps=len(by_step) - len(steps))
+        incomplete_stats_steps=len(by_step) - len(steps), log_notes=tuple(notes))
 
 
 def _inside(times, windows) -> int:
@@ -160,7 +176,8 @@ def score(spec: Spec, run: RunRecord) -> dict:
         "events": events,
         "displacement_max_m": {"predicted": pred_disp, "actual": run.max_displacement_m,
                                "relative_error": (pred_disp - run.max_displacement_m)
-                               / run.max_displacement_m},
+                               / run.max_displacement_m if run.max_displacement_m > 0
+                               else None},
         "critical_windows_s": critical,
         "moving_speed_m_s": threshold,
         "roi_moving_fraction": float(moving_in / moving_all) if moving_all else None,
@@ -174,6 +191,9 @@ def score(spec: Spec, run: RunRecord) -> dict:
         "budget": {"frames": spec.budget.frames, "bytes": spec.budget.bytes},
         "stats_steps": len(run.time_s), "incomplete_stats_steps": run.incomplete_stats_steps,
         "particles": run.particles,
+        # a truncated or damaged log: the score is of the messages of its complete chunks
+        "log": {"complete": not run.log_notes,
+                "notes": [{"kind": n.kind, "detail": n.detail} for n in run.log_notes]},
     }
 
 
@@ -182,8 +202,12 @@ def _pct(x) -> str:
 
 
 def markdown(result: dict) -> str:
-    lines = ["## Oracle score", "", "| event | predicted (s) | actual (s) | error | "
-             "within 10 % (at least one stats interval) |", "|---|---|---|---|---|"]
+    lines = ["## Oracle score", ""]
+    for n in result.get("log", {}).get("notes", []):
+        lines += [f"**Log {n['kind']}**: {n['detail']}. The score covers those messages only.",
+                  ""]
+    lines += ["| event | predicted (s) | actual (s) | error | "
+              "within 10 % (at least one stats interval) |", "|---|---|---|---|---|"]
     for e in result["events"]:
         lines.append(f"| {e['event']} | {e['predicted_s']:.3f} | {e['actual_s']:.3f} | "
                      f"{_pct(e['relative_error'])} ({e['error_s'] * 1e3:+.0f} ms) | "

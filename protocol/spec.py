@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -29,11 +30,15 @@ import numpy as np
 from protocol import check
 from protocol.errors import SpecError
 from protocol.view import Camera, InlineColormap, View, Window
-from protocol.wire import Envelope, MessageKind, encode
+from protocol.wire import MAX_HEADER_BYTES, Envelope, MessageKind, encode
 
 SPEC_VERSION = 2
 READS_VERSIONS = (1, 2)
 ID_FIELD = "id"  # particle ids, sent when views due at one step decimate differently
+# A spec travels as one message header of at most MAX_HEADER_BYTES of compact JSON; its file
+# may be indented, so it may be a few times larger, never more.
+MAX_SPEC_FILE_BYTES = 4 * MAX_HEADER_BYTES
+MAX_INT_DIGITS = 19  # decimal digits of a JSON integer: int64 (budget.bytes is the largest)
 
 __all__ = ["Budget", "Camera", "DataRequest", "InlineColormap", "PredictedEvent", "Region",
            "Spec", "View", "Window"]
@@ -264,11 +269,59 @@ class Spec:
 
     @classmethod
     def load(cls, path: str | Path) -> Spec:
+        """Read a spec file; SpecError names the file and the problem (OSError when the file
+        cannot be read)."""
+        with open(path, "rb") as f:
+            data = f.read(MAX_SPEC_FILE_BYTES + 1)
+        if len(data) > MAX_SPEC_FILE_BYTES:
+            raise SpecError(f"{path}: larger than {MAX_SPEC_FILE_BYTES} bytes "
+                            "(MAX_SPEC_FILE_BYTES), not a spec")
+        return cls.from_dict(loads_json(data, str(path)))
+
+
+class _Refused(ValueError):
+    """A JSON token that a spec file must not hold (raised by the json.loads hooks)."""
+
+
+def _parse_int(token: str) -> int:
+    digits = len(token.lstrip("-"))
+    if digits > MAX_INT_DIGITS:  # before int(): its cost grows with the digits
+        raise _Refused(f"holds a {digits}-digit integer (at most {MAX_INT_DIGITS} digits: "
+                       "64-bit integers)")
+    return int(token)
+
+
+def _parse_float(token: str) -> float:
+    value = float(token)
+    if not math.isfinite(value):
+        raise _Refused(f"holds the number {token[:40]}, beyond the range of a 64-bit float")
+    return value
+
+
+def _parse_constant(token: str):
+    raise _Refused(f"holds {token} (JSON has no NaN or Infinity; the wire refuses them)")
+
+
+def loads_json(data: bytes | str, where: str):
+    """The JSON document in `data` as a spec file may hold it: UTF-8, 64-bit integers, finite
+    numbers, nesting within what the parser allows (about a thousand levels); SpecError
+    "{where}: ..." otherwise. What loads here encodes as a SPEC message."""
+    if isinstance(data, bytes):
         try:
-            obj = json.loads(Path(path).read_text())
-        except json.JSONDecodeError as exc:
-            raise SpecError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(obj)
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise SpecError(f"{where}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                            f"{exc.start})") from None
+    try:
+        return json.loads(data, parse_int=_parse_int, parse_float=_parse_float,
+                          parse_constant=_parse_constant)
+    except _Refused as exc:
+        raise SpecError(f"{where}: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise SpecError(f"{where}: not valid JSON ({exc})") from None
+    except RecursionError:  # the C scanner counts its depth: no stack is exhausted
+        raise SpecError(f"{where}: JSON nested too deeply for the parser (about "
+                        f"{sys.getrecursionlimit()} levels; a spec needs fewer than 10)") from None
 
 
 def _list(s: dict, key: str, shape: str) -> list:

@@ -23,6 +23,13 @@ MAX_CFL = 0.5  # beyond this the explicit MLS-MPM update is not stable in our te
 DEFAULT_GRAVITY_M_S2 = (0.0, 0.0, -9.81)
 DEFAULT_FACE_FRICTION = 0.0
 MAX_PARTICLES_PER_CELL_PER_AXIS = 8
+# What one process may be asked to allocate, checked before anything is: a cell size typed
+# 1e-5 instead of 1e-2 otherwise asks numpy for terabytes. column_1m, the largest shipped
+# scene, has 720,000 cells and 1,036,800 particles.
+MAX_GRID_CELLS = 50_000_000  # cells of the domain: 3.2 GB of grid at GRID_BYTES_PER_CELL
+MAX_PARTICLES = 20_000_000  # seeded particles: 6.2 GB of state at PARTICLE_BYTES (and spares)
+GRID_BYTES_PER_CELL = 64  # float64 x sim.kernels.GRID_FIELDS (8) per node; tests check it
+PARTICLE_BYTES = 312  # float64 x 39 values of sim.state.ParticleState; tests check it
 
 
 class SceneError(ValueError):
@@ -295,6 +302,56 @@ def _parse_wall(t: dict, i: int, size_m) -> Wall:
     )
 
 
+def _count(x: float) -> str:
+    return f"{x:,.0f}" if x < 1e15 else f"{x:.3g}"
+
+
+def _bytes(b: float) -> str:
+    """b bytes in decimal units (1 GB = 1e9 B), e.g. '164 TB'."""
+    for unit, size in (("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if b >= size:
+            return f"{b / size:.3g} {unit}"
+    return f"{b:.0f} B"
+
+
+def _check_grid_size(size_m: tuple[float, float, float], dx: float) -> None:
+    """Refuse a grid of more than MAX_GRID_CELLS cells before the cell count is rounded or
+    anything is allocated (size / dx may be past any integer, or infinite)."""
+    per_axis = [s / dx for s in size_m]
+    cells = math.prod(per_axis)
+    if cells <= MAX_GRID_CELLS:
+        return
+    smallest_m = (math.prod(size_m) / MAX_GRID_CELLS) ** (1.0 / 3.0)
+    shape = " x ".join(_count(c) for c in per_axis)
+    asked = (f"{shape} = {_count(cells)} cells ({_bytes(cells * GRID_BYTES_PER_CELL)} at "
+             f"{GRID_BYTES_PER_CELL} bytes per cell)" if math.isfinite(cells)
+             else f"{shape} cells (more than 1e308)")
+    raise SceneError(
+        f"key 'domain.cell_size_m' = {dx:g} m makes a grid of {asked}, above the limit of "
+        f"{MAX_GRID_CELLS:,} cells (MAX_GRID_CELLS in sim/scene.py); use a cell size of at least "
+        f"{smallest_m * 1.001:.3g} m for domain.size_m = {list(size_m)}, or a smaller domain")
+
+
+def _check_particle_count(bodies: tuple[Body, ...], dx: float, ppc: int) -> None:
+    """Refuse bodies that would seed more than MAX_PARTICLES particles (estimated from their
+    volumes at the lattice spacing dx / ppc) before the lattice is built."""
+    spacing = dx / ppc
+    count = 0.0
+    for b in bodies:
+        if b.shape is Shape.BOX:
+            count += math.prod((h - lo) / spacing for lo, h in zip(b.lo_m, b.hi_m, strict=True))
+        else:
+            count += math.pi * b.radius_m**2 * b.height_m / spacing**3
+    if count <= MAX_PARTICLES:
+        return
+    raise SceneError(
+        f"the bodies would seed about {_count(count)} particles at a spacing of {spacing:g} m "
+        f"(domain.cell_size_m {dx:g} m / particles.per_cell_per_axis {ppc}; "
+        f"{_bytes(count * PARTICLE_BYTES)} at {PARTICLE_BYTES} bytes per particle), above the "
+        f"limit of {MAX_PARTICLES:,} particles (MAX_PARTICLES in sim/scene.py); use a larger "
+        f"cell size, fewer particles per cell or smaller bodies")
+
+
 def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scene:
     """Build a Scene from a parsed TOML document."""
     _check_keys(data, {"name", "description", "domain", "material", "particles", "body",
@@ -307,6 +364,7 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
     for a in range(3):
         _positive(size_m[a], f"domain.size_m[{a}]")
     dx = _positive(_get(domain, "cell_size_m", "domain", "float"), "domain.cell_size_m")
+    _check_grid_size(size_m, dx)
     for a in range(3):
         cells = size_m[a] / dx
         if abs(cells - round(cells)) > 1e-6 * max(cells, 1.0) or round(cells) < 1:
@@ -328,6 +386,7 @@ def parse_scene(data: dict, *, name: str = "scene", toml_text: str = "") -> Scen
     if not body_tables:
         raise SceneError("missing array of tables 'body' (use [[body]])")
     bodies = tuple(_parse_body(t, i, size_m) for i, t in enumerate(body_tables))
+    _check_particle_count(bodies, dx, ppc)
 
     boundary = _table(data, "boundary")
     _check_keys(boundary, set(FACES) | {"friction"}, "boundary")

@@ -117,14 +117,19 @@ def test_one_host_put_reaches_subscriber():
 
 
 # --- several hosts: TLS and access control, on loopback -------------------------------------
-@pytest.fixture(scope="module")
-def certs(tmp_path_factory) -> Path:
+def make_certs(tmp_path_factory) -> Path:
+    """make-certs.sh's test CA and role certificates in a new directory (skips without openssl)."""
     if shutil.which("openssl") is None:
         pytest.skip("openssl not found: cannot generate the test certificates for the TLS/ACL test")
     out = tmp_path_factory.mktemp("tls")
     subprocess.run(["bash", str(DEPLOY / "tls" / "make-certs.sh"), str(out)], check=True,
                    capture_output=True, timeout=60)
     return out
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory) -> Path:
+    return make_certs(tmp_path_factory)
 
 
 def local_copy(name: str, certs: Path, tmp: Path, loopback_readers: bool = True) -> Path:

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import free_port
-from test_deploy import TIMEOUT_S, Seen, denied_then_allowed, put_until_seen
+from test_deploy import TIMEOUT_S, Seen, denied_then_allowed, make_certs, put_until_seen
 
 from minority import deploy_cli
 from protocol import keys
@@ -184,11 +184,7 @@ def test_cli_hooks_into_a_subparsers_object():
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory) -> Path:
     """make-certs.sh's CA and role-wide certificates, then run certificates of A and B."""
-    if shutil.which("openssl") is None:
-        pytest.skip("openssl not found: cannot generate the test certificates for the TLS/ACL test")
-    out = tmp_path_factory.mktemp("tls")
-    subprocess.run(["bash", str(DEPLOY / "tls" / "make-certs.sh"), str(out)], check=True,
-                   capture_output=True, timeout=60)
+    out = make_certs(tmp_path_factory)
     for args in ([A, "rank", "viewer"], [B]):  # B: the default role, rank
         subprocess.run(["bash", str(MAKE_RUN_CERTS), str(out), *args], check=True,
                        capture_output=True, timeout=60)

@@ -1,6 +1,7 @@
 """Soak (slow): one render server, 5 runs at once, then 50 runs of one run id in a row, with
 hostile input interleaved — fuzzed chunks, a rank killed mid-run, a peer without the
-server's password, names that would escape --out. Afterwards every log opens with mcap's own
+server's password, names that would escape --out, a server restart (a killed one:
+tests/test_serve_runs.py). Afterwards every log opens with mcap's own
 reader, every run has each scheduled frame or a counted reason (an incomplete step, with the
 ranks it lacked), traced memory is back at its baseline, and nothing was written outside
 --out. Loopback only; waits are on messages and events, never on sleep."""
@@ -101,9 +102,14 @@ def test_one_server_many_runs_hostile_peers(server, client_factory, endpoint, tm
             if k % 10 == 6:  # a chunk naming run "..": rejected, it never reaches a path
                 escape = make_chunk(n=5, step=0, rank=0, ranks=RANKS, run="..")
                 put(sim, keys.chunk("seq", 0, 0), escape.encode(), LOSSLESS_QOS)
+            if k == 25:  # a server restart with the same --out and log: nothing overwritten
+                daemon.close()
+                daemon = RenderServer(server, ServerOptions(spec_for("seq"), out,
+                                                            out / "seq.mcap", timeout_s=2.0))
+                daemon._latest = _every_step()
             one_run(sim, "seq", rng, kill_rank=(k % 7 == 3))
-            assert wait_until(lambda k=k: daemon.finished.is_set()
-                              and daemon.current.name == ("seq" if k == 0 else f"seq.{k}"))
+            assert wait_until(lambda k=k, d=daemon: d.finished.is_set()
+                              and d.current.name == ("seq" if k == 0 else f"seq.{k}"))
         current = tracemalloc.get_traced_memory()[0]
     finally:
         tracemalloc.stop()

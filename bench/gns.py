@@ -20,10 +20,9 @@ import time
 
 import numpy as np
 import torch
-
-from gns.graph import radius_graph
-from gns.model import GNS, ModelConfig
-from gns.runtime import tune_allocator
+from minority.gns.graph import radius_graph
+from minority.gns.model import GNS, ModelConfig
+from minority.gns.runtime import tune_allocator
 
 SPACING_M, RADIUS_M = 0.016, 0.029
 LATTICES = {1_000: (10, 10, 10), 4_000: (16, 16, 16), 15_000: (25, 25, 24)}

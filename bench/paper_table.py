@@ -38,8 +38,8 @@ SIM_CORE, SERVER_CORE = 0, 1
 
 
 def spec_for(scene: Path):
-    from gns.oracle import fit_camera
-    from protocol.spec import Spec
+    from minority.gns.oracle import fit_camera
+    from minority.protocol.spec import Spec
 
     size = np.array(tomllib.loads(scene.read_text())["domain"]["size_m"], float)
     lo, hi = np.zeros(3), np.array([size[0] * 0.6, size[1], size[2]])
@@ -50,7 +50,7 @@ def spec_for(scene: Path):
 
 
 def run_sim(scene: Path, steps: int, publish) -> tuple[float, dict]:
-    from sim.ranks import RankRunConfig, run_ranks
+    from minority.sim.ranks import RankRunConfig, run_ranks
 
     config = RankRunConfig(scene_path=scene, out=None, threads=1, progress=False,
                            publish=publish, run=RUN, wait_s=30.0 if publish else 0.0,
@@ -65,9 +65,10 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
     """Start a server (pinned to its core), run the sim publishing to it, wait for the
     server to render the last step and exit; returns the sim's stepping wall time (s) and
     its publishing summary."""
+    from minority.protocol.session import NetworkOptions
+    from minority.sim.publish import PublishOptions
+
     from minority.demo import free_port
-    from protocol.session import NetworkOptions
-    from sim.publish import PublishOptions
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with open(log.with_suffix(".server.log"), "w") as server_log:
@@ -89,8 +90,9 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
 
 
 def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
+    from minority.sim.scene import builtin_scene_path
+
     from minority.report import load_run, timing_table
-    from sim.scene import builtin_scene_path
 
     scene = builtin_scene_path(scene_name)
     spec_path = work / f"{scene_name}.json"
@@ -134,7 +136,7 @@ def main() -> None:
         sys.exit("bench.paper_table needs 2 cores (sim and server pinned apart)")
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     os.sched_setaffinity(0, {SIM_CORE})
-    from sim.scene import builtin_scene_path
+    from minority.sim.scene import builtin_scene_path
 
     run_sim(builtin_scene_path("tiny"), 5, None)  # numba loads its kernels here, not in a run
     with tempfile.TemporaryDirectory(prefix="paper_table_") as tmp:

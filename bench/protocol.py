@@ -24,11 +24,10 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-
-from protocol import Chunk, decode_as, keys
-from protocol.log import LogWriter
-from protocol.session import LOSSLESS_QOS, NetworkOptions, Publisher, Role, open_session
-from protocol.wire import SENT_NS_OFFSET, stamp_sent
+from minority.protocol import Chunk, decode_as, keys
+from minority.protocol.log import LogWriter
+from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Publisher, Role, open_session
+from minority.protocol.wire import SENT_NS_OFFSET, stamp_sent
 
 RUN = "bench"
 RAW_KEY = "bench/raw"

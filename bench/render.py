@@ -22,10 +22,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-
-from protocol import Chunk, Spec, Timing, decode_as, keys
-from protocol.session import LOSSLESS_QOS, Inbox, NetworkOptions, Role, open_session, put
-from render_server.daemon import RenderServer, ServerOptions
+from minority.protocol import Chunk, Spec, Timing, decode_as, keys
+from minority.protocol.session import LOSSLESS_QOS, Inbox, NetworkOptions, Role, open_session, put
+from minority.render_server.daemon import RenderServer, ServerOptions
 
 RUN = "bench-render"
 SIZES = {13_000: 20, 100_000: 15, 1_000_000: 12}  # particles -> steps

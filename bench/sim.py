@@ -24,9 +24,8 @@ import json
 import time
 
 import numba
-
-from sim.driver import PhaseTimes, Simulator
-from sim.scene import builtin_scene_path, load_scene
+from minority.sim.driver import PhaseTimes, Simulator
+from minority.sim.scene import builtin_scene_path, load_scene
 
 SCENES = (("column_13k", 200), ("column_100k", 50), ("column_1m", 5))
 WARMUP_STEPS = 2

@@ -41,7 +41,7 @@ def free_endpoint() -> str:
 
 
 def bench_spec(every: int):
-    from protocol.spec import Spec
+    from minority.protocol.spec import Spec
 
     return Spec.from_dict({"version": 1, "run": RUN, "views": [{
         "name": "side", "camera": {"position": [0.35, -1.2, 0.16],
@@ -51,12 +51,11 @@ def bench_spec(every: int):
 
 def worker(args: argparse.Namespace) -> None:
     """One rank (under mpiexec): warm up, run, rank 0 prints the JSON result."""
+    from minority.protocol.session import NetworkOptions
+    from minority.sim.publish import PublishOptions
+    from minority.sim.ranks import RankRunConfig, run_ranks
+    from minority.sim.scene import builtin_scene_path
     from mpi4py import MPI
-
-    from protocol.session import NetworkOptions
-    from sim.publish import PublishOptions
-    from sim.ranks import RankRunConfig, run_ranks
-    from sim.scene import builtin_scene_path
 
     comm = MPI.COMM_WORLD
     warm = RankRunConfig(scene_path=builtin_scene_path("tiny"), out=None, threads=1,
@@ -96,9 +95,9 @@ def main() -> None:
         worker(args)
         return
 
-    from protocol import keys
-    from protocol.session import NetworkOptions, Role, open_session
-    from sim.ranks import RELAUNCH_ENV, mpiexec_path
+    from minority.protocol import keys
+    from minority.protocol.session import NetworkOptions, Role, open_session
+    from minority.sim.ranks import RELAUNCH_ENV, mpiexec_path
 
     endpoint = free_endpoint()
     session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)

@@ -17,12 +17,11 @@ import time
 
 import h5py
 import numpy as np
-
-from gns.oracle import AERIAL_DIRECTION, fit_camera
-from protocol.spec import Camera, View
-from sim.scene import builtin_scene_path, load_scene
-from sim.state import seed_particles
-from sim.visibility import visible_mask
+from minority.gns.oracle import AERIAL_DIRECTION, fit_camera
+from minority.protocol.spec import Camera, View
+from minority.sim.scene import builtin_scene_path, load_scene
+from minority.sim.state import seed_particles
+from minority.sim.visibility import visible_mask
 
 VIEWS = {"side": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "top": ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
          "aerial": (AERIAL_DIRECTION, (0.0, 0.0, 1.0))}

@@ -2,6 +2,6 @@
 
 from pathlib import Path
 
-from protocol.jitcache import drop_stale_numba_cache
+from minority.protocol.jitcache import drop_stale_numba_cache
 
 drop_stale_numba_cache(Path(__file__).parent)  # numba does not track cross-file changes

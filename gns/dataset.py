@@ -21,8 +21,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-
-from gns.metrics import deposit
+from minority.gns.metrics import deposit
 
 FORMAT = "minority-gns-dataset/1"
 SPLITS = ("train", "valid", "test")

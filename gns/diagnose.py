@@ -17,9 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-
-from gns.dataset import Trajectory
-from gns.graph import radius_graph
+from minority.gns.dataset import Trajectory
+from minority.gns.graph import radius_graph
 
 DEPTH_BANDS_M = ((0.0, 0.03), (0.03, 0.08), (0.08, 0.145), (0.145, np.inf))
 WALL_BANDS_M = ((0.0, 0.03), (0.03, 0.145), (0.145, np.inf))

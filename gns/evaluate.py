@@ -6,10 +6,9 @@ import sys
 import time
 
 import numpy as np
-
-from gns.dataset import load_metadata, load_split
-from gns.metrics import Deposit, deposit, mean_position_error, relative_errors
-from gns.rollout import RolloutError, rollout
+from minority.gns.dataset import load_metadata, load_split
+from minority.gns.metrics import Deposit, deposit, mean_position_error, relative_errors
+from minority.gns.rollout import RolloutError, rollout
 
 
 def evaluate(model, dataset, split: str = "test", *, device: str = "cpu",

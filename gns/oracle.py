@@ -19,8 +19,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from gns.events import (
+from minority.gns.events import (
     MOVING_SPEED_FRACTION,
     Events,
     displacement_range,
@@ -29,7 +28,7 @@ from gns.events import (
     find_events,
     moving_points,
 )
-from protocol.spec import SPEC_VERSION, Spec
+from minority.protocol.spec import SPEC_VERSION, Spec
 
 ORACLE_VERSION = "minority-oracle/1"
 VIEW_ANGLE_DEG = 30.0

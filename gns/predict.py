@@ -9,10 +9,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from gns.export import write_hdf5, write_vtk_series
-from gns.rollout import initial_state, rollout
-from gns.train import coarse_grain_stats, load_checkpoint
+from minority.gns.export import write_hdf5, write_vtk_series
+from minority.gns.rollout import initial_state, rollout
+from minority.gns.train import coarse_grain_stats, load_checkpoint
 
 # (particle spacing m, frame interval s, C, coarse_grain, coarse_grain_method)
 #   -> [C + 1, n, 3] m or None

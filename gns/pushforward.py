@@ -8,8 +8,7 @@ drift), which decides where a deposit stops.
 from __future__ import annotations
 
 import numpy as np
-
-from gns.rollout import rollout
+from minority.gns.rollout import rollout
 
 
 def unroll(model, inputs: np.ndarray, friction_deg: float, bounds_m: np.ndarray,

@@ -18,9 +18,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from gns.graph import radius_graph
-from gns.metrics import deposit, relative_errors, signed_relative_error
+from minority.gns.graph import radius_graph
+from minority.gns.metrics import deposit, relative_errors, signed_relative_error
 
 ESCAPE_RADII = 1.0  # connectivity radii outside the domain that count as leaving it
 

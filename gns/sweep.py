@@ -18,8 +18,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-
-from gns.dataset import COARSE_GRAIN_METHODS
+from minority.gns.dataset import COARSE_GRAIN_METHODS
 
 SPLITS = ("train", "valid", "test")
 MAX_DRAWS = 100_000  # rejection-sampling attempts before the config is declared infeasible

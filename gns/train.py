@@ -22,12 +22,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from gns.dataset import load_metadata, load_split
-from gns.events import find_events
-from gns.graph import radius_graph
-from gns.model import GNS, ModelConfig, deepen
-from gns.pushforward import draw_steps, unroll
+from minority.gns.dataset import load_metadata, load_split
+from minority.gns.events import find_events
+from minority.gns.graph import radius_graph
+from minority.gns.model import GNS, ModelConfig, deepen
+from minority.gns.pushforward import draw_steps, unroll
 
 CHECKPOINT_FORMAT = "minority-gns-checkpoint/1"
 STAT_KEYS = ("vel_mean", "vel_std", "acc_mean", "acc_std", "friction_mean_deg",
@@ -238,8 +237,8 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         raise ValueError("--deepen needs --init (the checkpoint to deepen)")
     if not 0 <= cfg.moving_fraction <= 1:
         raise ValueError(f"moving_fraction {cfg.moving_fraction} must be within [0, 1]")
-    from gns.rollout import rollout_error
-    from gns.runtime import tune_allocator
+    from minority.gns.rollout import rollout_error
+    from minority.gns.runtime import tune_allocator
 
     tune_allocator()
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")

@@ -14,7 +14,7 @@ DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not 
 
 
 def _add_network(p: argparse.ArgumentParser) -> None:
-    from protocol.session import add_network_args
+    from minority.protocol.session import add_network_args
     add_network_args(p)
 
 
@@ -30,8 +30,8 @@ def _open_peer(opts, role, command: str, wait_s: float):
     """A zenoh session, or None after saying in one line why no peer was reached."""
     import zenoh
 
-    from protocol.auth import CredentialsError, credentials_dir
-    from protocol.session import open_session
+    from minority.protocol.auth import CredentialsError, credentials_dir
+    from minority.protocol.session import open_session
 
     try:
         return open_session(opts, role)
@@ -50,8 +50,8 @@ def _open_peer(opts, role, command: str, wait_s: float):
 def _cmd_record(args: argparse.Namespace) -> int:
     from mcap.writer import CompressionType
 
-    from protocol.log import Recorder, free_log_path
-    from protocol.session import Role, options_from_args
+    from minority.protocol.log import Recorder, free_log_path
+    from minority.protocol.session import Role, options_from_args
 
     args.output = free_log_path(args.output)  # never overwrite a log
     opts = options_from_args(args)
@@ -91,10 +91,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
 def _cmd_serve(args: argparse.Namespace) -> int:
     import zenoh
 
-    from protocol.errors import SpecError
-    from protocol.session import Role, open_session, options_from_args, shm_pool_for
-    from protocol.spec import Spec
-    from render_server.daemon import RenderServer, ServerOptions
+    from minority.protocol.errors import SpecError
+    from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
+    from minority.protocol.spec import Spec
+    from minority.render_server.daemon import RenderServer, ServerOptions
 
     try:
         specs = [Spec.load(path) for path in args.spec]
@@ -152,9 +152,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from sim.driver import SimulationError
-    from sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
-    from sim.scene import SceneError, scene_path
+    from minority.sim.driver import SimulationError
+    from minority.sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
+    from minority.sim.scene import SceneError, scene_path
 
     if args.ranks is not None and args.ranks < 1:
         print("minority sim: error: --ranks must be at least 1", file=sys.stderr)
@@ -165,8 +165,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         scene = scene_path(args.scene)
         publish = None
         if not args.no_publish:
-            from protocol.session import options_from_args
-            from sim.publish import PublishOptions
+            from minority.protocol.session import options_from_args
+            from minority.sim.publish import PublishOptions
 
             publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
                                      record=args.record, stats_every_s=args.stats_every_s)
@@ -198,8 +198,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    from minority.protocol.errors import ProtocolError, SpecError
     from minority.replay import ReplayError, replay
-    from protocol.errors import ProtocolError, SpecError
 
     def fail(exc: Exception, status: int) -> int:
         print(f"minority replay: error: {exc}", file=sys.stderr)
@@ -214,7 +214,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             print("minority replay: --publish re-sends the chunks only; the server renders them "
                   "with its own spec (--spec, --out, --vtk ignored)", file=sys.stderr)
         return _replay_publish(args)
-    from protocol.spec import Spec
+    from minority.protocol.spec import Spec
 
     out = args.out
     if out is None and args.vtk is None:
@@ -233,9 +233,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _replay_publish(args: argparse.Namespace) -> int:
 
+    from minority.protocol.errors import ProtocolError
+    from minority.protocol.session import Role, options_from_args
     from minority.replay import NoServer, ReplayError, publish
-    from protocol.errors import ProtocolError
-    from protocol.session import Role, options_from_args
 
     opts = options_from_args(args)
     opts.connect_timeout_s = args.wait
@@ -279,9 +279,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
+    from minority.protocol.errors import ProtocolError, SpecError
+    from minority.protocol.spec import Spec
     from minority.score import ScoreError, load_run, markdown, score
-    from protocol.errors import ProtocolError, SpecError
-    from protocol.spec import Spec
 
     if len(args.operands) != 2:
         print("minority report score: usage: minority report score SPEC.json RUN.mcap "

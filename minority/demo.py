@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from sim.columns import ColumnSpec, channel_column_toml
+from minority.sim.columns import ColumnSpec, channel_column_toml
 
 ROOT = Path(__file__).resolve().parent.parent
 CHECKPOINT = ROOT / "gns" / "checkpoints" / "column_l64_m5.pt"
@@ -43,7 +43,7 @@ class DemoOptions:
     timeout_s: float = 600.0  # the sim's wall-clock limit
 
     def __post_init__(self) -> None:
-        from gns.oracle import OracleOptions
+        from minority.gns.oracle import OracleOptions
 
         OracleOptions(frames=self.frames)  # a budget the oracle refuses fails now, not later
 
@@ -79,11 +79,11 @@ class Steps:
 def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
     import torch
 
-    from gns.oracle import Oracle, OracleOptions
-    from gns.runtime import tune_allocator
+    from minority.gns.oracle import Oracle, OracleOptions
+    from minority.gns.runtime import tune_allocator
     from minority.preview import preview
+    from minority.protocol.paraview import write_pvcc_for_views
     from minority.warmstart import predict_scene
-    from protocol.paraview import write_pvcc_for_views
 
     tune_allocator()
     torch.set_num_threads(o.threads)
@@ -146,9 +146,9 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
 
 
 def main(o: DemoOptions) -> int:
+    from minority.protocol.spec import Spec
     from minority.report import report
     from minority.score import load_run, markdown, score
-    from protocol.spec import Spec
 
     say = Steps()
     o.out.mkdir(parents=True, exist_ok=True)

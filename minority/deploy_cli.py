@@ -17,7 +17,7 @@ from pathlib import Path
 def _cmd_acl(args: argparse.Namespace) -> int:
     import zenoh
 
-    from protocol.acl import ConfigTextError, router_access_control, router_config_text
+    from minority.protocol.acl import ConfigTextError, router_access_control, router_config_text
 
     shared = [role for role, off in (("server", args.no_shared_server),
                                      ("viewer", args.no_shared_viewer)) if not off]

@@ -34,8 +34,8 @@ def _stopped(result) -> str:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from protocol.errors import ProtocolError
-    from protocol.repair import LogState, scan
+    from minority.protocol.errors import ProtocolError
+    from minority.protocol.repair import LogState, scan
 
     if not _readable(args.log, "check"):
         return 2
@@ -58,7 +58,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_repair(args: argparse.Namespace) -> int:
-    from protocol.repair import LogState, repair
+    from minority.protocol.repair import LogState, repair
 
     out = args.output or default_output(args.log)
     if not _readable(args.log, "repair"):

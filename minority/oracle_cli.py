@@ -16,8 +16,8 @@ def _fail(step: str, exc: Exception, status: int) -> int:
 
 
 def _cmd_dataset(args: argparse.Namespace) -> int:
-    from gns.dataset import DatasetError, build
-    from gns.sweep import SweepError, load_config, run_sweep
+    from minority.gns.dataset import DatasetError, build
+    from minority.gns.sweep import SweepError, load_config, run_sweep
 
     try:
         cfg = load_config(args.config)
@@ -41,9 +41,9 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     import torch
 
-    from gns.dataset import DatasetError
-    from gns.model import ModelConfig
-    from gns.train import CheckpointError, TrainConfig, train
+    from minority.gns.dataset import DatasetError
+    from minority.gns.model import ModelConfig
+    from minority.gns.train import CheckpointError, TrainConfig, train
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -71,11 +71,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_rollout(args: argparse.Namespace) -> int:
     import torch
 
-    from gns.rollout import RolloutError
-    from gns.runtime import tune_allocator
-    from gns.train import CheckpointError
+    from minority.gns.rollout import RolloutError
+    from minority.gns.runtime import tune_allocator
+    from minority.gns.train import CheckpointError
+    from minority.sim.scene import SceneError, scene_path
     from minority.warmstart import predict_scene
-    from sim.scene import SceneError, scene_path
 
     tune_allocator()
     if args.threads:
@@ -99,10 +99,10 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 def _cmd_spec(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from gns.export import read_rollout
-    from gns.oracle import Oracle, OracleOptions
-    from protocol.errors import SpecError
-    from protocol.paraview import write_pvcc_for_views
+    from minority.gns.export import read_rollout
+    from minority.gns.oracle import Oracle, OracleOptions
+    from minority.protocol.errors import SpecError
+    from minority.protocol.paraview import write_pvcc_for_views
 
     try:
         r = read_rollout(args.rollout)
@@ -133,7 +133,7 @@ def _cmd_spec(args: argparse.Namespace) -> int:
 
 def _cmd_preview(args: argparse.Namespace) -> int:
     from minority.preview import preview
-    from protocol.errors import SpecError
+    from minority.protocol.errors import SpecError
 
     try:
         out = preview(args.spec, args.rollout, args.out, args.columns, args.thumb_width)
@@ -149,8 +149,8 @@ def _load_for_cpu(args: argparse.Namespace):
     args.threads torch threads (raises CheckpointError or OSError as load_checkpoint)."""
     import torch
 
-    from gns.runtime import tune_allocator
-    from gns.train import load_checkpoint
+    from minority.gns.runtime import tune_allocator
+    from minority.gns.train import load_checkpoint
 
     tune_allocator()
     if args.threads:
@@ -169,9 +169,9 @@ def _checkpoint_on_scenes_args(q: argparse.ArgumentParser) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from gns.dataset import DatasetError
-    from gns.evaluate import evaluate
-    from gns.train import CheckpointError
+    from minority.gns.dataset import DatasetError
+    from minority.gns.evaluate import evaluate
+    from minority.gns.train import CheckpointError
 
     try:
         model, ckpt = _load_for_cpu(args)
@@ -204,9 +204,9 @@ def _bands(text: str) -> list[tuple[int, int]]:
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     import json
 
-    from gns.dataset import DatasetError, load_split
-    from gns.diagnose import balance
-    from gns.train import CheckpointError
+    from minority.gns.dataset import DatasetError, load_split
+    from minority.gns.diagnose import balance
+    from minority.gns.train import CheckpointError
 
     try:
         model, _ = _load_for_cpu(args)
@@ -231,7 +231,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
-    from gns.train import CheckpointError, ship
+    from minority.gns.train import CheckpointError, ship
 
     try:
         out = ship(args.checkpoint, args.out)

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from protocol.spec import ID_FIELD, Spec
-from render_server.frames import render_views
-from render_server.render import Canvas
+from minority.protocol.spec import ID_FIELD, Spec
+from minority.render_server.frames import render_views
+from minority.render_server.render import Canvas
 
 LABEL_PX = 14  # label strip height above each thumbnail
 
@@ -101,7 +101,7 @@ def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, sp
 
 def preview(spec_path: Path, rollout_path: Path, out: Path, columns: int = 6,
             thumb_width: int = 256) -> Path:
-    from gns.export import read_rollout
+    from minority.gns.export import read_rollout
 
     spec = Spec.load(spec_path)
     r = read_rollout(rollout_path)

@@ -31,16 +31,16 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import zenoh
 
+from minority.protocol import keys
+from minority.protocol.errors import ProtocolError
+from minority.protocol.log import read_log
+from minority.protocol.messages import Chunk
+from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
+from minority.protocol.spec import ID_FIELD, Region, Spec, View
+from minority.protocol.view import INSTANT_TOLERANCE
+from minority.render_server.assemble import AssembledStep, StepAssembler
+from minority.render_server.frames import render_views
 from minority.report import LogNote, Notice, notice_on_stderr, read_log_noting, say_notes
-from protocol import keys
-from protocol.errors import ProtocolError
-from protocol.log import read_log
-from protocol.messages import Chunk
-from protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
-from protocol.spec import ID_FIELD, Region, Spec, View
-from protocol.view import INSTANT_TOLERANCE
-from render_server.assemble import AssembledStep, StepAssembler
-from render_server.frames import render_views
 
 # The simulation's sender QoS (sim.publish.SENDER_QOS: block, data priority), not imported so
 # that replay does not load the simulation; tests check that the two agree.

@@ -24,8 +24,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from protocol.errors import ProtocolError, SpecError
-from protocol.log import (
+from minority.protocol.errors import ProtocolError, SpecError
+from minority.protocol.log import (
     MCAP_MAGIC,
     REJECTED_TOPIC,
     LogDamagedWarning,
@@ -33,9 +33,9 @@ from protocol.log import (
     LogTruncatedWarning,
     read_log,
 )
-from protocol.messages import ChunkMeta, Event, EventKind, Timing
-from protocol.spec import Spec
-from protocol.wire import MessageKind, decode
+from minority.protocol.messages import ChunkMeta, Event, EventKind, Timing
+from minority.protocol.spec import Spec
+from minority.protocol.wire import MessageKind, decode
 
 MAX_STEP_ROWS = 200  # per-step table rows printed (first and last half beyond that)
 MAX_LISTED = 20  # step numbers listed inline

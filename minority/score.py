@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
+from minority.gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
+from minority.protocol.messages import SPEED_EDGES_M_S, Frame, Stats
+from minority.protocol.spec import Spec
 from minority.report import (
     LogNote,
     Notice,
@@ -27,8 +29,6 @@ from minority.report import (
     read_log_noting,
     say_notes,
 )
-from protocol.messages import SPEED_EDGES_M_S, Frame, Stats
-from protocol.spec import Spec
 
 EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
 EDGES = np.asarray(SPEED_EDGES_M_S)

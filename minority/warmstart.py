@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.driver import Simulator
-from sim.scene import SceneError, parse_scene
+from minority.sim.driver import Simulator
+from minority.sim.scene import SceneError, parse_scene
 
 
 def mpm_history(scene_toml: Path, spacing_m: float, frame_interval_s: float,
@@ -28,7 +28,7 @@ def mpm_history(scene_toml: Path, spacing_m: float, frame_interval_s: float,
     coarse_grain k > 1 (a model trained on coarse-grained MPM runs), the MPM runs as its
     training data did, two particles per axis at spacing_m / k, and each group of k^3 becomes
     one by `method` (gns.dataset.coarse_grain: "mean" or "sample")."""
-    from gns import dataset
+    from minority.gns import dataset
 
     data = tomllib.loads(Path(scene_toml).read_text())
     errors = []
@@ -58,7 +58,7 @@ def predict_scene(checkpoint: Path, scene: Path, duration_s: float | None = None
                   start: str = "mpm", device: str = "cpu", progress: bool = False, log=None):
     """gns.predict.predict from the MPM's first frames (start "mpm"; from rest, with a
     warning, when the MPM cannot seed the scene at the model's spacing) or from rest."""
-    from gns.predict import predict
+    from minority.gns.predict import predict
 
     out = log if log is not None else sys.stderr
 

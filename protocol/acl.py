@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Sequence
 
-from protocol import check, keys
+from minority.protocol import check, keys
 
 RANK, SERVER, VIEWER = "rank", "server", "viewer"
 ROLES = (RANK, SERVER, VIEWER)

@@ -6,7 +6,7 @@ import math
 import re
 from typing import Any
 
-from protocol.errors import ProtocolError
+from minority.protocol.errors import ProtocolError
 
 # Safe inside one key-expression chunk and as one path component: 1-64 characters, the
 # first a letter, digit or underscore (so never ".", ".." or an option-like "-x"); \Z, not $,

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from protocol import check
+from minority.protocol import check
 
 ROOT = "minority"
 ALL_RUNS = "*"

@@ -29,14 +29,13 @@ import zenoh
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
-
-from protocol import keys
-from protocol.errors import ProtocolError
-from protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
-from protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
-from protocol.session import Inbox
-from protocol.spec import Spec
-from protocol.wire import PREFIX_SIZE, SENT_NS_OFFSET
+from minority.protocol import keys
+from minority.protocol.errors import ProtocolError
+from minority.protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
+from minority.protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
+from minority.protocol.session import Inbox
+from minority.protocol.spec import Spec
+from minority.protocol.wire import PREFIX_SIZE, SENT_NS_OFFSET
 
 PROFILE = "minority"
 REJECTED_TOPIC = f"{keys.ROOT}/_rejected"

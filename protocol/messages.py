@@ -13,11 +13,10 @@ from typing import Annotated, ClassVar, Literal
 
 import msgspec
 import numpy as np
-
-from protocol import check
-from protocol.errors import ProtocolError
-from protocol.spec import Spec
-from protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
+from minority.protocol import check
+from minority.protocol.errors import ProtocolError
+from minority.protocol.spec import Spec
+from minority.protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
 
 MAX_RANKS = 1 << 20
 MAX_IMAGE_SIDE = 8192  # px

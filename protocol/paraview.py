@@ -26,9 +26,9 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from xml.parsers import expat
 
-from protocol import check
-from protocol.errors import SpecError
-from protocol.spec import Camera
+from minority.protocol import check
+from minority.protocol.errors import SpecError
+from minority.protocol.spec import Camera
 
 PVCC_ROOT = "PVCameraConfiguration"
 PVCC_DESCRIPTION = "ParaView camera configuration"

@@ -34,9 +34,8 @@ from mcap.records import (
 )
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
-
-from protocol.errors import ProtocolError
-from protocol.log import MCAP_MAGIC
+from minority.protocol.errors import ProtocolError
+from minority.protocol.log import MCAP_MAGIC
 
 _COMPRESSION = {"": CompressionType.NONE, "lz4": CompressionType.LZ4,
                 "zstd": CompressionType.ZSTD}

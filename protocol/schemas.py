@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from protocol import wire
+from minority.protocol import wire
 
 WIRE_ENCODING = "minority-wire-v1"
 WIRE_SCHEMA = (wire.__doc__ or "") + """

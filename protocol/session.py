@@ -25,8 +25,7 @@ from enum import StrEnum
 from pathlib import Path
 
 import zenoh
-
-from protocol.auth import (
+from minority.protocol.auth import (
     Credentials,
     client_credentials,
     credentials_dir,
@@ -34,7 +33,7 @@ from protocol.auth import (
     read_credentials,
     server_credentials,
 )
-from protocol.wire import stamp_sent
+from minority.protocol.wire import stamp_sent
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 # 1M particles x (positions [n,3] f4 + 4 scalar f4 fields) = 28 MB; room for two in flight.

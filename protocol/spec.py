@@ -26,11 +26,10 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
-
-from protocol import check
-from protocol.errors import SpecError
-from protocol.view import Camera, InlineColormap, View, Window
-from protocol.wire import MAX_HEADER_BYTES, Envelope, MessageKind, encode
+from minority.protocol import check
+from minority.protocol.errors import SpecError
+from minority.protocol.view import Camera, InlineColormap, View, Window
+from minority.protocol.wire import MAX_HEADER_BYTES, Envelope, MessageKind, encode
 
 SPEC_VERSION = 2
 READS_VERSIONS = (1, 2)

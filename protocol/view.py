@@ -11,9 +11,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from protocol import check
-from protocol.errors import SpecError
+from minority.protocol import check
+from minority.protocol.errors import SpecError
 
 MAX_IMAGE_SIDE = 8192  # px; 3840x2160 is the largest size the server is tested with
 DEFAULT_EVERY_STEPS = 20

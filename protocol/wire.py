@@ -33,8 +33,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 import numpy as np
-
-from protocol.errors import ProtocolError
+from minority.protocol.errors import ProtocolError
 
 MAGIC = b"MNRT"
 FORMAT_VERSION = 1

@@ -18,8 +18,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from protocol.messages import Chunk
+from minority.protocol.messages import Chunk
 
 DEFAULT_TIMEOUT_S = 5.0
 DEFAULT_MAX_PENDING = 256  # steps

@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from minority.protocol.spec import Camera
 from numba import njit, prange
-
-from protocol.spec import Camera
 
 
 @dataclass(frozen=True)

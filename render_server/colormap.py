@@ -14,10 +14,9 @@ from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
+from minority.protocol.errors import SpecError
+from minority.protocol.view import InlineColormap
 from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
-
-from protocol.errors import SpecError
-from protocol.view import InlineColormap
 
 LUT_SIZE = 1024
 _SPACES = {"RGB": "SetColorSpaceToRGB", "HSV": "SetColorSpaceToHSV", "Lab": "SetColorSpaceToLab",

@@ -24,23 +24,22 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-
-from protocol import keys
-from protocol.errors import ProtocolError
-from protocol.messages import MAX_RANKS, Chunk, Event, EventKind, Frame, Stats, Timing, decode_as
-from protocol.session import CONTROL_QOS, FRAME_QOS, Inbox, put
-from protocol.spec import Spec
-from protocol.wire import SENT_NS_OFFSET
-from render_server.assemble import (
+from minority.protocol import keys
+from minority.protocol.errors import ProtocolError
+from minority.protocol.messages import MAX_RANKS, Chunk, Event, EventKind, Frame, Stats, Timing, decode_as
+from minority.protocol.session import CONTROL_QOS, FRAME_QOS, Inbox, put
+from minority.protocol.spec import Spec
+from minority.protocol.wire import SENT_NS_OFFSET
+from minority.render_server.assemble import (
     DEFAULT_MAX_PENDING,
     DEFAULT_MAX_PENDING_BYTES,
     DEFAULT_TIMEOUT_S,
     AssembledStep,
     StepAssembler,
 )
-from render_server.frames import render_views
-from render_server.render import Canvas, prepare, render
-from render_server.runs import LogQueue, RunInstance, ServerStats, instance_paths, open_writer
+from minority.render_server.frames import render_views
+from minority.render_server.render import Canvas, prepare, render
+from minority.render_server.runs import LogQueue, RunInstance, ServerStats, instance_paths, open_writer
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 TOKEN_GRACE_S = 1.0  # a rank whose token vanished without a done event: gone this much later
@@ -95,7 +94,7 @@ class LatestStep:
 
 def warm_up() -> None:
     """Run every render kernel once on a tiny scene (numba compiles or loads its cache)."""
-    from protocol.spec import Camera, View
+    from minority.protocol.spec import Camera, View
 
     view = View("warm-up", Camera((0.0, -1.0, 0.0), (0.0, 0.0, 0.0)), 8, 8)
     scene = prepare(np.zeros((2, 3), np.float32), 0.1)

@@ -16,11 +16,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-
-from protocol.errors import SpecError
-from protocol.spec import ID_FIELD, Region, Spec, View, inside_mask
-from render_server.colormap import view_colormap
-from render_server.render import Canvas, Scene, encode_png, prepare, render
+from minority.protocol.errors import SpecError
+from minority.protocol.spec import ID_FIELD, Region, Spec, View, inside_mask
+from minority.render_server.colormap import view_colormap
+from minority.render_server.render import Canvas, Scene, encode_png, prepare, render
 
 # (regions or None for every particle, id stride or 1): what picks a view's particles
 SubsetKey = tuple[tuple[Region, ...] | None, int]

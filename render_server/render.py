@@ -15,16 +15,15 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from minority.protocol.spec import View
+from minority.render_server.accel import BrickGrids, build_grids
+from minority.render_server.bricks import Bricks, as_positions, repartition
+from minority.render_server.camera import basis, pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
+from minority.render_server.cast import cast
+from minority.render_server.colormap import view_colormap
+from minority.render_server.trace import trace
 from numba import njit, prange
 from PIL import Image
-
-from protocol.spec import View
-from render_server.accel import BrickGrids, build_grids
-from render_server.bricks import Bricks, as_positions, repartition
-from render_server.camera import basis, pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
-from render_server.cast import cast
-from render_server.colormap import view_colormap
-from render_server.trace import trace
 
 AMBIENT = 0.3
 DIFFUSE = 0.7

@@ -16,8 +16,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from protocol.log import LogWriter
-from render_server.assemble import StepAssembler
+from minority.protocol.log import LogWriter
+from minority.render_server.assemble import StepAssembler
 
 IDLE_FLUSH_S = 0.5  # an idle log queue completes its open MCAP chunks this often
 

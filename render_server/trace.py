@@ -14,10 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from minority.render_server.accel import BrickGrids
+from minority.render_server.bricks import MAX_BRICKS, Bricks, as_positions
 from numba import njit, prange
-
-from render_server.accel import BrickGrids
-from render_server.bricks import MAX_BRICKS, Bricks, as_positions
 
 RAYS_PER_TASK = 256  # rays per parallel work item (scratch arrays are per item)
 NO_HIT = -1

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sim.scene import DEFAULT_DP_CONE, DEFAULT_FLIP, Scene, loads_scene
+from minority.sim.scene import DEFAULT_DP_CONE, DEFAULT_FLIP, Scene, loads_scene
 
 
 @dataclass(frozen=True)

@@ -35,11 +35,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
-
-from sim import kernels
-from sim.driver import BlockBinning, NonFiniteError, Simulator
-from sim.state import (
+from minority.sim import kernels
+from minority.sim.driver import BlockBinning, NonFiniteError, Simulator
+from minority.sim.state import (
     GRID_FIELDS,
     GRID_PAD_NODES,
     PARTICLE_FIELDS,
@@ -47,6 +45,7 @@ from sim.state import (
     ParticleState,
     seed_particles,
 )
+from numba import njit, prange
 
 BLOCK = kernels.BLOCK_CELLS
 KEY_RANK_SHIFT = 40  # storage key = rank << 40 | local slot at the last reorder

@@ -19,10 +19,9 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-
-from sim import kernels
-from sim.scene import FACES, Scene
-from sim.state import GridState, ParticleState, make_grid, seed_particles
+from minority.sim import kernels
+from minority.sim.scene import FACES, Scene
+from minority.sim.state import GridState, ParticleState, make_grid, seed_particles
 
 REORDER_INTERVAL_STEPS = 20  # physically re-sort particle arrays this often (locality)
 UNBOUNDED_M = 1e30  # extent of the domain-face walls along the other axes

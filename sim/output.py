@@ -27,8 +27,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-
-from sim.scene import Scene
+from minority.sim.scene import Scene
 
 FORMAT = "minority-sim-trajectory/1"
 PARTICLE_TYPE_SAND = 6  # the id GNS (learning_to_simulate lineage) uses for sand

@@ -16,11 +16,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats
-from protocol.spec import DataRequest, Region, inside_mask
-from sim.state import ParticleState
-from sim.visibility import visible_mask
+from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats
+from minority.protocol.spec import DataRequest, Region, inside_mask
+from minority.sim.state import ParticleState
+from minority.sim.visibility import visible_mask
 
 
 @dataclass(frozen=True)

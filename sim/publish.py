@@ -80,19 +80,18 @@ from pathlib import Path
 from typing import TextIO
 
 import zenoh
-
-from protocol import keys
-from protocol.errors import ProtocolError, SpecError
-from protocol.messages import (
+from minority.protocol import keys
+from minority.protocol.errors import ProtocolError, SpecError
+from minority.protocol.messages import (
     Chunk,
     Event,
     EventKind,
     decode_as,
 )
-from protocol.session import NetworkOptions, QoS, Role, open_session, put
-from protocol.spec import DataRequest, Spec
-from protocol.view import Window
-from sim.outbox import (
+from minority.protocol.session import NetworkOptions, QoS, Role, open_session, put
+from minority.protocol.spec import DataRequest, Spec
+from minority.protocol.view import Window
+from minority.sim.outbox import (
     CHUNK,
     CONTROL,
     OUTBOX_BYTES,
@@ -102,8 +101,8 @@ from sim.outbox import (
     Outbox,
     OutboxItem,
 )
-from sim.payload import SIM_FIELDS, cull, flow_stats
-from sim.state import ParticleState
+from minority.sim.payload import SIM_FIELDS, cull, flow_stats
+from minority.sim.state import ParticleState
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
 SPEC_RETRY_S = 0.2  # s between spec queries while waiting for a starting server
@@ -303,7 +302,7 @@ class RankPublisher:
         """Declare the liveliness token, follow spec updates, start the sender thread."""
         self.run, self.spec = run, spec
         if self.options.record is not None:
-            from protocol.log import LogWriter
+            from minority.protocol.log import LogWriter
 
             self._writer = LogWriter(record_path(self.options.record, self.rank), metadata={
                 "run": run, "rank": str(self.rank), "ranks": str(self.ranks), "side": "sim"})

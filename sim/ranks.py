@@ -25,12 +25,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
-from protocol.messages import EventKind
-from sim.decomp import DEFAULT_REBALANCE_EVERY, SlabSimulator
-from sim.driver import NonFiniteError, TimeStepError
-from sim.output import TrajectoryWriter
-from sim.runner import PROGRESS_EVERY_S, _frame_times
-from sim.scene import load_scene
+from minority.protocol.messages import EventKind
+from minority.sim.decomp import DEFAULT_REBALANCE_EVERY, SlabSimulator
+from minority.sim.driver import NonFiniteError, TimeStepError
+from minority.sim.output import TrajectoryWriter
+from minority.sim.runner import PROGRESS_EVERY_S, _frame_times
+from minority.sim.scene import load_scene
 
 # Environment variables that MPI launchers set in the processes they start (MPICH/Hydra,
 # PMIx launchers such as Open MPI's and Slurm's srun --mpi=pmix, Open MPI's own).
@@ -187,10 +187,10 @@ def _start_publishing(config, scene, sim, comm, log):
     Returns (publisher or None, run, spec)."""
     if config.publish is None:
         return None, config.run, None
-    from protocol.session import shm_pool_for
-    from protocol.spec import Spec
-    from sim.payload import SIM_FIELDS, particle_bytes
-    from sim.publish import RankPublisher
+    from minority.protocol.session import shm_pool_for
+    from minority.protocol.spec import Spec
+    from minority.sim.payload import SIM_FIELDS, particle_bytes
+    from minority.sim.publish import RankPublisher
 
     rank, ranks = comm.Get_rank(), comm.Get_size()
     bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))

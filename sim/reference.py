@@ -9,9 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from sim.kernels import APIC_D_INV, WALL_TOL_CELLS
-from sim.plasticity import dp_project_numpy
+from minority.sim.kernels import APIC_D_INV, WALL_TOL_CELLS
+from minority.sim.plasticity import dp_project_numpy
 
 
 @dataclass

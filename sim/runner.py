@@ -9,9 +9,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-from sim.driver import Simulator
-from sim.output import TrajectoryWriter
-from sim.scene import load_scene
+from minority.sim.driver import Simulator
+from minority.sim.output import TrajectoryWriter
+from minority.sim.scene import load_scene
 
 PROGRESS_EVERY_S = 2.0  # wall time between progress lines between frames, s
 PROGRESS_STEPS = 50  # steps between checks of the progress clock

@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from sim.kernels import GRID_FIELDS, permute_particles
-from sim.scene import Scene, Shape
+from minority.sim.kernels import GRID_FIELDS, permute_particles
+from minority.sim.scene import Scene, Shape
 
 GRID_PAD_NODES = 2  # ghost nodes beyond each domain face (stencil reach + clamp margin)
 

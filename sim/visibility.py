@@ -27,9 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from minority.protocol.view import View
 from numba import njit, prange
-
-from protocol.view import View
 
 MAX_BINS = 1 << 22  # bins per image, a bound on the cover buffer (32 MiB)
 BINS_PER_RADIUS = 6.0  # bin edge ~ a sixth of the typical disk radius (px)

@@ -10,10 +10,9 @@ import zlib
 
 import numpy as np
 import pytest
-
-from protocol import Chunk, Event, EventKind, Frame, Spec, Stats, Timing
-from protocol.auth import CREDENTIALS_ENV
-from protocol.session import NetworkOptions, Role, open_session
+from minority.protocol import Chunk, Event, EventKind, Frame, Spec, Stats, Timing
+from minority.protocol.auth import CREDENTIALS_ENV
+from minority.protocol.session import NetworkOptions, Role, open_session
 
 
 def pytest_configure(config) -> None:

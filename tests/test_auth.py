@@ -7,17 +7,16 @@ import stat
 
 import pytest
 import zenoh
-from test_loopback import wait_until
-
-from protocol import keys
-from protocol.auth import (
+from minority.protocol import keys
+from minority.protocol.auth import (
     CREDENTIALS_ENV,
     CredentialsError,
     credentials_path,
     read_credentials,
     server_credentials,
 )
-from protocol.session import Inbox, NetworkOptions, Role, open_session
+from minority.protocol.session import Inbox, NetworkOptions, Role, open_session
+from test_loopback import wait_until
 
 
 def test_the_server_makes_a_private_password_and_keeps_it_across_restarts(endpoint):

@@ -14,15 +14,13 @@ import numpy as np
 import pytest
 import torch
 from conftest import make_chunk
-
-from minority.cli import main
-from protocol import Spec, Stats, Timing
-from protocol.errors import ProtocolError, SpecError
-from protocol.log import LogDamagedWarning, LogTruncatedWarning, LogWriter
-from protocol.messages import SPEED_BINS, decode_as, decode_message, speed_histogram
-from protocol.spec import MAX_INT_DIGITS, MAX_SPEC_FILE_BYTES
-from protocol.wire import FORMAT_VERSION, MAGIC, PREFIX, PREFIX_SIZE, MessageKind
-from sim.scene import (
+from minority.protocol import Spec, Stats, Timing
+from minority.protocol.errors import ProtocolError, SpecError
+from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, LogWriter
+from minority.protocol.messages import SPEED_BINS, decode_as, decode_message, speed_histogram
+from minority.protocol.spec import MAX_INT_DIGITS, MAX_SPEC_FILE_BYTES
+from minority.protocol.wire import FORMAT_VERSION, MAGIC, PREFIX, PREFIX_SIZE, MessageKind
+from minority.sim.scene import (
     GRID_BYTES_PER_CELL,
     MAX_GRID_CELLS,
     MAX_PARTICLES,
@@ -31,6 +29,8 @@ from sim.scene import (
     SceneError,
     loads_scene,
 )
+
+from minority.cli import main
 
 RUN = "bad-input"
 SHIPPED_CHECKPOINT = SCENES_DIR.parent.parent / "gns" / "checkpoints" / "column_l64_m5.pt"
@@ -159,7 +159,7 @@ def test_too_many_particles_are_refused_before_seeding():
 
 
 def test_the_memory_estimates_are_what_the_sim_allocates():
-    from sim.state import make_grid, seed_particles
+    from minority.sim.state import make_grid, seed_particles
 
     scene = loads_scene(TINY)
     grid = make_grid(scene)

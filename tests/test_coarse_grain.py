@@ -4,10 +4,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from gns.dataset import DatasetError, coarse_grain
-from gns.metrics import deposit
-from gns.sweep import SweepError, load_config, plan
+from minority.gns.dataset import DatasetError, coarse_grain
+from minority.gns.metrics import deposit
+from minority.gns.sweep import SweepError, load_config, plan
 
 CONFIGS = Path(__file__).resolve().parent.parent / "gns" / "configs"
 

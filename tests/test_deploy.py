@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import free_port
+from minority.protocol import keys
+from minority.protocol.session import NetworkOptions, Role, make_config, open_session
 
 from minority.cli import build_parser
-from protocol import keys
-from protocol.session import NetworkOptions, Role, make_config, open_session
 
 ROOT = Path(__file__).parent.parent
 DEPLOY = ROOT / "deploy"
@@ -58,7 +58,7 @@ def test_zenoh_config_parses(path):
 
 
 def test_one_host_files_equal_the_embedded_defaults():
-    from sim.publish import BLOCK_TIMEOUT_KEY, BLOCK_TIMEOUT_S
+    from minority.sim.publish import BLOCK_TIMEOUT_KEY, BLOCK_TIMEOUT_S
 
     server = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "one-host.json5"))
     assert json.loads(str(server)) == json.loads(str(make_config(NetworkOptions(), Role.SERVER)))

@@ -9,13 +9,12 @@ import h5py
 import numpy as np
 import pytest
 import torch
-
-from gns.dataset import build, load_metadata, load_split
-from gns.export import write_vtk_series
-from gns.model import GNS, ModelConfig, deepen
-from gns.rollout import RolloutError, initial_state, rollout
-from gns.sweep import ScenePlan, SweepError, load_config, plan
-from gns.train import TrainConfig, combined_stats, load_checkpoint, ship, train
+from minority.gns.dataset import build, load_metadata, load_split
+from minority.gns.export import write_vtk_series
+from minority.gns.model import GNS, ModelConfig, deepen
+from minority.gns.rollout import RolloutError, initial_state, rollout
+from minority.gns.sweep import ScenePlan, SweepError, load_config, plan
+from minority.gns.train import TrainConfig, combined_stats, load_checkpoint, ship, train
 
 SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
 
@@ -95,16 +94,17 @@ def test_sweep_extends_and_extra_tables_add_scenes_in_their_ranges(tmp_path):
 
 
 def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, capsys):
-    import gns.sweep
+    from minority.gns import sweep as gns_sweep
+
     from minority.cli import main
 
     seen = {}
 
     def fake_sweep(cfg, out, **kw):
         seen["plans"] = plan(cfg)
-        raise gns.sweep.SweepError("stop before running")
+        raise gns_sweep.SweepError("stop before running")
 
-    monkeypatch.setattr(gns.sweep, "run_sweep", fake_sweep)
+    monkeypatch.setattr(gns_sweep, "run_sweep", fake_sweep)
     rc = main(["oracle", "dataset", "--config", str(SWEEP), "--runs", str(tmp_path / "r"),
                "--out", str(tmp_path / "d"), "--extra-train", "3", "--extra-valid", "1"])
     assert rc == 1 and "stop before running" in capsys.readouterr().err
@@ -171,7 +171,7 @@ def _stats():
 
 
 def _inputs(n=50, seed=0):
-    from gns.graph import radius_graph
+    from minority.gns.graph import radius_graph
     rng = np.random.default_rng(seed)
     x = rng.uniform(0.2, 0.3, (n, 3))
     pos = x[:, None, :] + np.cumsum(rng.normal(0, 1e-3, (n, 6, 3)), axis=1)
@@ -231,13 +231,13 @@ def test_train_checkpoint_resume_and_rollout(dataset, tmp_path):
     assert (tmp_path / "m_step9.pt").exists() and not (tmp_path / "m_step6.pt").exists()
     full = [h for h in load_checkpoint(out)[1]["history"] if h.get("step") == 9
             and "val_error_m" in h]
-    from gns.rollout import rollout_error  # full-length rollouts: the worst scene's errors
+    from minority.gns.rollout import rollout_error  # full-length rollouts: the worst scene's errors
     vals = [rollout_error(load_checkpoint(out)[0], t, 10_000) for t in load_split(path, "valid")]
     for key in ("runout", "displacement_range"):
         assert full[0][f"val_{key}_error_max"] == pytest.approx(max(v[key] for v in vals))
     assert full[0]["val_runout_signed"] == pytest.approx([v["runout_signed"] for v in vals])
     assert full[0]["val_height_signed"] == pytest.approx([v["height_signed"] for v in vals])
-    from gns.metrics import HEIGHT_QUANTILE
+    from minority.gns.metrics import HEIGHT_QUANTILE
     for v, t in zip(vals, load_split(path, "valid"), strict=True):  # > 0: too tall
         pred, _ = rollout(load_checkpoint(out)[0], t.positions[:6].astype(np.float64),
                           t.friction_angle_deg, t.bounds_m, t.positions.shape[0] - 6)
@@ -282,7 +282,7 @@ def test_train_ema_saves_the_average_and_resumes_it(dataset, tmp_path):
 
 
 def test_pushforward_unroll_is_the_rollout_and_draws_steps():
-    from gns.pushforward import draw_steps, unroll
+    from minority.gns.pushforward import draw_steps, unroll
     torch.manual_seed(0)
     model = GNS(ModelConfig(latent=8, message_passing=1), _stats()).eval()
     pos = _inputs()[0].numpy().astype(np.float64)  # [n, C+1, 3]
@@ -299,7 +299,7 @@ def test_pushforward_unroll_is_the_rollout_and_draws_steps():
 
 
 def test_pushforward_window_targets_the_true_velocity_from_the_advanced_inputs(dataset):
-    from gns.train import Sampler
+    from minority.gns.train import Sampler
     path, _, _ = dataset
     trajs = load_split(path, "train")
     seen = []
@@ -324,16 +324,16 @@ def test_pushforward_window_targets_the_true_velocity_from_the_advanced_inputs(d
 
 
 def test_train_with_pushforward_unrolls_the_model(dataset, tmp_path, monkeypatch):
-    import gns.train
+    from minority.gns import train as gns_train
     path, _, _ = dataset
     calls = []
-    real = gns.train.unroll
+    real = gns_train.unroll
 
     def counting(model, inputs, friction, bounds, steps, device):
         calls.append(steps)
         return real(model, inputs, friction, bounds, steps, device)
 
-    monkeypatch.setattr(gns.train, "unroll", counting)
+    monkeypatch.setattr(gns_train, "unroll", counting)
     tc = TrainConfig(steps=4, batch=2, val_every=10, ckpt_every=4, pushforward_steps=3,
                      pushforward_prob=1.0)
     out = train(path, tmp_path / "p.pt", ModelConfig(latent=8, message_passing=1), tc,
@@ -368,8 +368,8 @@ def test_rollout_divergence_names_the_frame():
 
 
 def test_initial_state_matches_the_mpm_seeding():
-    from sim.scene import builtin_scene_path, load_scene
-    from sim.state import seed_particles
+    from minority.sim.scene import builtin_scene_path, load_scene
+    from minority.sim.state import seed_particles
 
     path = builtin_scene_path("tiny")
     scene = load_scene(path)
@@ -403,7 +403,7 @@ def test_vtk_series_opens_with_arrays(tmp_path):
 
 def test_inference_path_equals_autograd_path():
     torch.manual_seed(2)
-    import gns.model as gm
+    import minority.gns.model as gm
     model = GNS(ModelConfig(latent=16, message_passing=3), _stats()).eval()
     pos, fr, b, s, r = _inputs(n=300)
     ref = model(pos, fr, b, s, r).detach()  # autograd path
@@ -419,7 +419,7 @@ def test_inference_path_equals_autograd_path():
 
 
 def test_deposit_measures():
-    from gns.metrics import deposit, relative_errors
+    from minority.gns.metrics import deposit, relative_errors
     x0 = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(10), indexing="ij"),
                   -1).reshape(-1, 3) * 0.01
     x1 = x0 * np.array([2.0, 1.0, 0.5])
@@ -454,7 +454,7 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
                        timeout=120)
     if p.returncode == 0:
         with h5py.File(out / "rollout.h5", "r") as f:
-            from sim.scene import builtin_scene_path
+            from minority.sim.scene import builtin_scene_path
             n = initial_state(builtin_scene_path("tiny"), 0.016, 0.005, 5).positions.shape[1]
             assert f["positions"].shape == (5, n, 3)  # t = 0 plus 4 frames of 0.005 s
             np.testing.assert_allclose(f["time"][:], np.arange(5) * 0.005)
@@ -527,7 +527,7 @@ def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):
 
 
 def test_coarse_grain_averages_the_groups_of_each_coarse_cube():
-    from gns.dataset import coarse_grain
+    from minority.gns.dataset import coarse_grain
 
     fine = 0.5  # m
     idx = np.stack(np.meshgrid(np.arange(4), np.arange(2), np.arange(3), indexing="ij"), -1)
@@ -547,7 +547,7 @@ def test_coarse_grain_averages_the_groups_of_each_coarse_cube():
 
 
 def test_coarse_grain_config_runs_the_mpm_finer():
-    from gns.sweep import scene_toml
+    from minority.gns.sweep import scene_toml
 
     cfg = load_config(SWEEP.with_name("column_sweep_cg2.toml"))
     coarse = load_config(SWEEP)
@@ -561,8 +561,8 @@ def test_coarse_grain_config_runs_the_mpm_finer():
 def test_evaluate_and_validation_measure_the_same_rollout_error(dataset, tmp_path):
     """Both average over the predicted frames only (the C+1 MPM frames a rollout starts from
     have no error), and agree on the deposit errors."""
-    from gns.evaluate import evaluate
-    from gns.rollout import rollout_error
+    from minority.gns.evaluate import evaluate
+    from minority.gns.rollout import rollout_error
 
     path, _, _ = dataset
     out = tmp_path / "m.pt"
@@ -579,8 +579,8 @@ def test_evaluate_and_validation_measure_the_same_rollout_error(dataset, tmp_pat
 def test_a_coarse_grained_dataset_scores_against_the_run_at_its_resolution(tmp_path):
     """The metadata keep each MPM run's own deposit; evaluate scores the rollout against it
     as well as against the coarse-grained data."""
-    from gns.evaluate import evaluate
-    from gns.metrics import Deposit, deposit, relative_errors
+    from minority.gns.evaluate import evaluate
+    from minority.gns.metrics import Deposit, deposit, relative_errors
 
     rng = np.random.default_rng(5)
     runs, raw = [], {}
@@ -624,7 +624,7 @@ def test_one_friction_angle_and_a_still_axis_give_finite_features(tmp_path):
     model = GNS(ModelConfig(latent=8, message_passing=1), combined_stats(meta, 0.0))
     traj = load_split(tmp_path / "ds", "train")[0]
     pos = torch.as_tensor(np.transpose(traj.positions[:6], (1, 0, 2)), dtype=torch.float32)
-    from gns.graph import radius_graph
+    from minority.gns.graph import radius_graph
 
     s, r = radius_graph(traj.positions[5].astype(np.float64), 0.029)
     with torch.no_grad():

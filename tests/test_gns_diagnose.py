@@ -9,10 +9,9 @@ import sys
 import numpy as np
 import pytest
 import torch
-
-from gns.dataset import Trajectory
-from gns.diagnose import balance, depth_below_surface, regions
-from gns.model import GNS, ModelConfig
+from minority.gns.dataset import Trajectory
+from minority.gns.diagnose import balance, depth_below_surface, regions
+from minority.gns.model import GNS, ModelConfig
 
 S = 0.016  # particle spacing, m
 
@@ -100,7 +99,7 @@ def test_balance_compares_predicted_with_run_accelerations():
 
 
 def test_cli_diagnose(tmp_path):
-    from gns.train import CHECKPOINT_FORMAT
+    from minority.gns.train import CHECKPOINT_FORMAT
 
     torch.save({"format": CHECKPOINT_FORMAT, "model_config": {"latent": 8, "mlp_layers": 2,
                 "message_passing": 1, "input_velocities": 5}, "stats": _stats(),

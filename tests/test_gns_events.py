@@ -2,8 +2,7 @@
 
 import numpy as np
 import pytest
-
-from gns.events import displacement_range, extent, find_events, moving_extent
+from minority.gns.events import displacement_range, extent, find_events, moving_extent
 
 DT = 0.01
 
@@ -45,7 +44,7 @@ def test_moving_extent_and_ranges():
 
 
 def test_fast_windows_cover_the_speed_bump():
-    from gns.events import fast_windows, speeds
+    from minority.gns.events import fast_windows, speeds
 
     pos, _ = _synthetic()
     scale = np.quantile(speeds(pos, DT), 0.95, axis=1)
@@ -60,7 +59,7 @@ def test_fast_windows_cover_the_speed_bump():
 def test_event_speeds_are_taken_at_the_frame_times():
     """A run's in situ statistics use instantaneous velocities; a backward difference is the
     speed half a frame earlier, so the event series use centered differences."""
-    from gns.events import speeds
+    from minority.gns.events import speeds
 
     t = np.arange(41) * DT
     accel = 2.0  # m/s^2, from rest

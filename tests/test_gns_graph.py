@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
-
-from gns.graph import radius_graph
+from minority.gns.graph import radius_graph
 
 
 def _all_pairs(pos, r):

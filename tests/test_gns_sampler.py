@@ -2,10 +2,9 @@
 
 import numpy as np
 import pytest
-
-from gns.dataset import Trajectory
-from gns.events import find_events
-from gns.train import Sampler
+from minority.gns.dataset import Trajectory
+from minority.gns.events import find_events
+from minority.gns.train import Sampler
 
 C, DT = 5, 0.005  # input velocities, frame interval (s)
 
@@ -40,8 +39,8 @@ def test_moving_windows_end_before_the_scene_is_at_rest():
 
 
 def test_moving_fraction_outside_zero_to_one_is_refused(tmp_path):
-    from gns.model import ModelConfig
-    from gns.train import TrainConfig, train
+    from minority.gns.model import ModelConfig
+    from minority.gns.train import TrainConfig, train
 
     with pytest.raises(ValueError, match="moving_fraction 1.5"):
         train(tmp_path / "missing", tmp_path / "m.pt", ModelConfig(),

@@ -6,12 +6,11 @@ import sys
 import textwrap
 
 import pytest
-
-from protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
+from minority.protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
 
 PACKAGE_INIT = textwrap.dedent("""
     from pathlib import Path
-    from protocol.jitcache import drop_stale_numba_cache
+    from minority.protocol.jitcache import drop_stale_numba_cache
     drop_stale_numba_cache(Path(__file__).parent)
 """)
 CALLER = textwrap.dedent("""

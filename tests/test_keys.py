@@ -1,8 +1,7 @@
 """Key expressions of ARCHITECTURE.md and their parsing."""
 
 import pytest
-
-from protocol import keys
+from minority.protocol import keys
 
 
 def test_key_expressions():

@@ -8,9 +8,8 @@ import pytest
 from conftest import make_chunk, sample_messages
 from mcap.reader import make_reader
 from mcap.writer import CompressionType
-
-from protocol import Chunk, Frame, ProtocolError, Timing
-from protocol.log import (
+from minority.protocol import Chunk, Frame, ProtocolError, Timing
+from minority.protocol.log import (
     REJECTED_TOPIC,
     LogDamagedWarning,
     LogTruncatedWarning,
@@ -140,7 +139,7 @@ def test_a_damaged_chunk_inside_the_log_is_said(tmp_path, compression):
 
 
 def test_a_log_is_never_overwritten(tmp_path):
-    from protocol.log import free_log_path
+    from minority.protocol.log import free_log_path
 
     path = tmp_path / "run.mcap"
     with LogWriter(path) as log:
@@ -175,7 +174,7 @@ def test_times_outside_mcap_range_never_reach_the_writer(tmp_path):
 
 @pytest.mark.parametrize("data", [b"\xff", b"[" * 100_000, b'{"run": ' + b"9" * 5000 + b"}"])
 def test_a_stored_json_record_that_cannot_be_parsed_is_a_protocol_error(data):
-    from protocol.log import LogRecord
+    from minority.protocol.log import LogRecord
 
     record = LogRecord("minority/r/timing", 0, 0, "minority.Timing", data)
     with pytest.raises(ProtocolError, match="stored JSON is invalid"):

@@ -12,10 +12,9 @@ import warnings
 
 import pytest
 from conftest import fail_call, make_chunk
-
-from protocol import Chunk, decode_as, keys
-from protocol.log import LogDamagedWarning, LogTruncatedWarning, Recorder, read_log
-from protocol.session import LOSSLESS_QOS, Inbox, put
+from minority.protocol import Chunk, decode_as, keys
+from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, Recorder, read_log
+from minority.protocol.session import LOSSLESS_QOS, Inbox, put
 
 RUN = "test-run"
 TIMEOUT_S = 30.0
@@ -159,7 +158,7 @@ def test_recorder_survives_a_write_error(server, client_factory, tmp_path):
 def test_recorder_survives_a_negative_sent_time(server, client_factory, tmp_path):
     """A timing message stamped before the epoch is rejected with its reason; the recorder
     writes on and its file is complete."""
-    from protocol import Timing
+    from minority.protocol import Timing
 
     sender, observer = client_factory(), client_factory()
     recorder = Recorder(observer, tmp_path / "neg.mcap", run=RUN, flush_interval_s=0.1)

@@ -6,12 +6,11 @@ import sys
 
 import numpy as np
 import pytest
-
-from gns.export import write_hdf5
-from gns.oracle import Oracle, OracleOptions, fit_camera
-from protocol import Spec
-from protocol.paraview import read_pvcc
-from render_server.camera import project
+from minority.gns.export import write_hdf5
+from minority.gns.oracle import Oracle, OracleOptions, fit_camera
+from minority.protocol import Spec
+from minority.protocol.paraview import read_pvcc
+from minority.render_server.camera import project
 
 DT = 0.005  # s per rollout frame
 BOUNDS = np.array([[0.0, 1.0], [0.0, 0.2], [0.0, 0.4]])
@@ -176,8 +175,7 @@ def test_preview_contact_sheet(tmp_path):
 
 def test_an_mpm_run_reads_as_a_prediction(tmp_path):
     import h5py
-
-    from gns.export import SIM_FORMAT, read_rollout
+    from minority.gns.export import SIM_FORMAT, read_rollout
 
     pos = collapse(frames=41)
     with h5py.File(tmp_path / "mpm.h5", "w") as f:
@@ -193,7 +191,7 @@ def test_an_mpm_run_reads_as_a_prediction(tmp_path):
 
 
 def test_segments_cut_at_the_fast_phase():
-    from gns.oracle import _segments
+    from minority.gns.oracle import _segments
 
     def edges(segs):
         return [a for a, _ in segs] + [segs[-1][1]]

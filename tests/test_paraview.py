@@ -8,9 +8,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
-from protocol.errors import SpecError
-from protocol.paraview import (
+from minority.protocol.errors import SpecError
+from minority.protocol.paraview import (
     MAX_PVCC_BYTES,
     read_colormap_preset,
     read_pvcc,
@@ -20,7 +19,7 @@ from protocol.paraview import (
     write_pvcc,
     write_pvcc_for_views,
 )
-from protocol.spec import Camera
+from minority.protocol.spec import Camera
 
 PERSPECTIVE = Camera(position=(0.45, -1.2, 0.35), focal_point=(0.3, 0.1, 0.08),
                      view_up=(0.0, 0.2, 0.98), view_angle_deg=27.5)
@@ -295,7 +294,7 @@ def test_bad_preset_files(tmp_path):
 
 
 def test_written_preset_loads_in_render_server(tmp_path, presets_file):
-    from render_server.colormap import load_presets, preset
+    from minority.render_server.colormap import load_presets, preset
 
     out = tmp_path / "scaled.json"
     write_colormap_preset(out, rescale_preset(read_colormap_preset(presets_file, "Cool to Warm"),

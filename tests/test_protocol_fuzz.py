@@ -6,9 +6,8 @@ import struct
 
 import pytest
 from conftest import sample_messages
-
-from protocol import Chunk, Event, Frame, ProtocolError, Spec, Timing, decode_as, decode_message
-from protocol.wire import ALIGN, PREFIX, PREFIX_SIZE
+from minority.protocol import Chunk, Event, Frame, ProtocolError, Spec, Timing, decode_as, decode_message
+from minority.protocol.wire import ALIGN, PREFIX, PREFIX_SIZE
 
 CASES_PER_DECODER = 10_000
 HOSTILE_VALUES = [None, True, -1, 0, 2**63, -(2**70), 1e308, "x" * 300, "", [], [1, 2],
@@ -115,8 +114,7 @@ def test_fuzz_decoder_raises_only_protocol_error(name):
 def test_an_empty_array_with_absurd_dimensions_is_a_protocol_error():
     """Zero elements pass the size checks, but numpy refuses the shape: still ProtocolError."""
     import numpy as np
-
-    from protocol.wire import MessageKind, decode, encode
+    from minority.protocol.wire import MessageKind, decode, encode
 
     payload = bytes(encode(MessageKind.CHUNK, {"a": 1},
                            {"x": np.empty((0, 2**35, 10**7), np.float32)}))
@@ -138,7 +136,7 @@ def test_a_negative_sent_time_is_refused(message):
 
 @pytest.mark.parametrize("name", [".", "..", "a\n", "-x", ".hidden", "a/b", "", "x" * 65])
 def test_names_that_are_not_one_safe_path_component_are_refused(name):
-    from protocol import check, keys
+    from minority.protocol import check, keys
 
     with pytest.raises(ProtocolError):
         check.name(name, "run")

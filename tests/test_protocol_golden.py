@@ -13,8 +13,7 @@ from pathlib import Path
 import msgspec
 import pytest
 from conftest import sample_messages
-
-from protocol import Chunk, decode_message
+from minority.protocol import Chunk, decode_message
 
 GOLDEN = Path(__file__).parent / "golden"
 SENT_NS = 1_700_000_000_123_456_789

@@ -3,9 +3,18 @@
 import numpy as np
 import pytest
 from conftest import make_chunk, make_png, sample_messages
-
-from protocol import Chunk, Event, Frame, MessageKind, ProtocolError, Spec, Timing, decode_as, decode_message
-from protocol.wire import ALIGN, PREFIX_SIZE, decode, encode
+from minority.protocol import (
+    Chunk,
+    Event,
+    Frame,
+    MessageKind,
+    ProtocolError,
+    Spec,
+    Timing,
+    decode_as,
+    decode_message,
+)
+from minority.protocol.wire import ALIGN, PREFIX_SIZE, decode, encode
 
 
 def assert_same(a, b):

@@ -2,8 +2,7 @@
 
 import numpy as np
 from conftest import make_chunk
-
-from render_server.assemble import StepAssembler
+from minority.render_server.assemble import StepAssembler
 
 MS = 1_000_000
 
@@ -114,7 +113,7 @@ def test_an_absurd_step_does_not_hide_the_steps_after_it():
 
 
 def test_steps_older_than_the_remembered_releases_are_late():
-    from render_server.assemble import RELEASED_WINDOW
+    from minority.render_server.assemble import RELEASED_WINDOW
 
     a = StepAssembler()
     for step in range(10, 10 + RELEASED_WINDOW + 5):

@@ -3,10 +3,9 @@ projection matrix (within 0.5 px), perspective and parallel; rays pass through t
 
 import numpy as np
 import pytest
+from minority.protocol.spec import Camera
+from minority.render_server.camera import basis, primary_rays, project
 from vtkmodules.vtkRenderingCore import vtkCamera
-
-from protocol.spec import Camera
-from render_server.camera import basis, primary_rays, project
 
 WIDTH, HEIGHT = 640, 480
 PIXEL_TOL = 0.5

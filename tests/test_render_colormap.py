@@ -4,9 +4,8 @@ import json
 
 import numpy as np
 import pytest
-
-from protocol import SpecError
-from render_server.colormap import builtin_presets, from_paraview, load_presets, preset, to_paraview
+from minority.protocol import SpecError
+from minority.render_server.colormap import builtin_presets, from_paraview, load_presets, preset, to_paraview
 
 
 def test_cool_to_warm_matches_paraview_control_points():

@@ -9,12 +9,11 @@ import warnings
 import numpy as np
 import pytest
 from conftest import make_chunk
+from minority.protocol import Frame, Spec, Timing, decode_as, keys
+from minority.protocol.log import read_log
+from minority.protocol.session import LOSSLESS_QOS, Inbox, put
+from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import TIMEOUT_S, wait_until
-
-from protocol import Frame, Spec, Timing, decode_as, keys
-from protocol.log import read_log
-from protocol.session import LOSSLESS_QOS, Inbox, put
-from render_server.daemon import RenderServer, ServerOptions
 
 RUN = "test-run"
 
@@ -129,7 +128,7 @@ def test_minority_serve_runs_until_sigterm(endpoint, tmp_path):
     import subprocess
     import sys
 
-    from protocol.session import NetworkOptions, Role, open_session
+    from minority.protocol.session import NetworkOptions, Role, open_session
 
     spec().save(tmp_path / "spec.json")
     proc = subprocess.Popen([sys.executable, "-m", "minority", "serve", "--spec",
@@ -206,7 +205,7 @@ def test_every_s_schedule_uses_the_chunks_previous_step_time(server, client_fact
 
 
 def test_finished_after_every_rank_is_done_and_the_last_step_rendered(daemon, client_factory):
-    from protocol import Event, EventKind
+    from minority.protocol import Event, EventKind
 
     sim = client_factory()
     frames, timing = Inbox(sim, keys.frames(RUN)), Inbox(sim, keys.timing(RUN))
@@ -229,7 +228,7 @@ def test_finished_after_every_rank_is_done_and_the_last_step_rendered(daemon, cl
 def test_a_done_event_that_overtakes_the_ranks_last_chunk_waits_for_it(daemon, client_factory):
     """rank_done travels at a higher priority than the chunks: the rank counts as gone only
     once the chunks its event counts have arrived, so its last step is rendered whole."""
-    from protocol import Event, EventKind
+    from minority.protocol import Event, EventKind
 
     sim = client_factory()
     timing = Inbox(sim, keys.timing(RUN))
@@ -272,7 +271,7 @@ def test_ranks_disagreeing_on_a_field_and_an_unwritable_frame_dir_are_survived(
 
 
 def test_an_older_step_never_replaces_a_newer_one_waiting():
-    from render_server.daemon import LatestStep
+    from minority.render_server.daemon import LatestStep
 
     slot = LatestStep()
     newer, older = make_step(11), make_step(10)
@@ -285,14 +284,14 @@ def test_an_older_step_never_replaces_a_newer_one_waiting():
 
 
 def make_step(step: int):
-    from render_server.assemble import AssembledStep
+    from minority.render_server.assemble import AssembledStep
 
     return AssembledStep(step, 0.001 * step, np.zeros((1, 3), np.float32), {}, 0.01, 1, 1, 0,
                          0.0, False)
 
 
 def done_event(rank: int, sent: int | None = None) -> bytearray:
-    from protocol import Event, EventKind
+    from minority.protocol import Event, EventKind
 
     return Event(RUN, EventKind.RANK_DONE, rank, "done",
                  {} if sent is None else {"sent": sent}).encode()

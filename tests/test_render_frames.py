@@ -2,14 +2,13 @@
 particles of its window's regions, decimated by id; one acceleration structure per distinct
 subset; inline colormaps; every_s cadences decided with the previous step's time."""
 
+import minority.render_server.frames as frames
 import numpy as np
 import pytest
-
-import render_server.frames as frames
-from protocol.spec import InlineColormap, Spec, inside_mask
-from render_server.assemble import AssembledStep
-from render_server.colormap import preset, view_colormap
-from render_server.render import prepare, render
+from minority.protocol.spec import InlineColormap, Spec, inside_mask
+from minority.render_server.assemble import AssembledStep
+from minority.render_server.colormap import preset, view_colormap
+from minority.render_server.render import prepare, render
 
 RUN = "frames-run"
 CAMERA = {"position": [0.5, -2.0, 0.5], "focal_point": [0.5, 0.5, 0.5]}

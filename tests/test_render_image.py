@@ -5,10 +5,9 @@ import io
 
 import numpy as np
 import pytest
+from minority.protocol.spec import Camera, View
+from minority.render_server.render import encode_png, render_step
 from PIL import Image
-
-from protocol.spec import Camera, View
-from render_server.render import encode_png, render_step
 
 
 def one_sphere_view(**kw) -> View:
@@ -65,7 +64,7 @@ def test_uhd_image_size():
 
 
 def test_reused_canvas_renders_like_a_fresh_one():
-    from render_server.render import Canvas, prepare, render
+    from minority.render_server.render import Canvas, prepare, render
 
     rng = np.random.default_rng(3)
     view = one_sphere_view()

@@ -3,13 +3,12 @@ particle per pixel, also for spheres straddling brick faces."""
 
 import numpy as np
 import pytest
-
-from protocol.spec import Camera
-from render_server.accel import build_grids
-from render_server.bricks import repartition
-from render_server.camera import primary_rays, ray_frame
-from render_server.cast import cast
-from render_server.trace import trace, trace_brute_force
+from minority.protocol.spec import Camera
+from minority.render_server.accel import build_grids
+from minority.render_server.bricks import repartition
+from minority.render_server.camera import primary_rays, ray_frame
+from minority.render_server.cast import cast
+from minority.render_server.trace import trace, trace_brute_force
 
 WIDTH, HEIGHT = 64, 48
 

@@ -9,6 +9,12 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 from conftest import free_port, make_chunk
+from minority.protocol import Frame, ProtocolError, Spec, keys
+from minority.protocol.log import read_log
+from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
+from minority.protocol.spec import Region, View
+from minority.render_server.assemble import AssembledStep
+from minority.render_server.daemon import RenderServer, ServerOptions
 from PIL import Image
 from test_loopback import wait_until
 from test_render_daemon import EveryStep
@@ -23,12 +29,6 @@ from minority.replay import (
     replay,
     unrecorded,
 )
-from protocol import Frame, ProtocolError, Spec, keys
-from protocol.log import read_log
-from protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
-from protocol.spec import Region, View
-from render_server.assemble import AssembledStep
-from render_server.daemon import RenderServer, ServerOptions
 
 RUN = "replay-run"
 STEPS = (0, 20, 40, 50)  # 50 is not scheduled: recorded, not rendered
@@ -158,7 +158,7 @@ def test_vtk_series_round_trip(recorded, tmp_path):
 
 def test_publish_to_a_second_server_renders_the_same_frames(recorded, server, endpoint,
                                                             tmp_path, capsys):
-    from sim.publish import SENDER_QOS
+    from minority.sim.publish import SENDER_QOS
 
     assert REPLAY_QOS == SENDER_QOS  # the simulation's QoS
     daemon = RenderServer(server, ServerOptions(RECORDED, tmp_path / "frames", None,

@@ -9,6 +9,8 @@ import sys
 import numpy as np
 import pytest
 from conftest import make_png, make_spec
+from minority.protocol import Chunk, Event, EventKind, Frame, Timing
+from minority.protocol.log import LogWriter
 
 from minority.cli import main
 from minority.report import (
@@ -21,8 +23,6 @@ from minority.report import (
     timing_table,
     total_particles,
 )
-from protocol import Chunk, Event, EventKind, Frame, Timing
-from protocol.log import LogWriter
 
 RUN = "rep"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -4,11 +4,11 @@ import json
 
 import numpy as np
 import pytest
+from minority.protocol import Chunk, Frame, Spec, Stats
+from minority.protocol.log import LogWriter
+from minority.protocol.messages import SPEED_BINS, speed_histogram
 
 from minority.score import load_run, markdown, moving_count, quantile_from_histogram, score
-from protocol import Chunk, Frame, Spec, Stats
-from protocol.log import LogWriter
-from protocol.messages import SPEED_BINS, speed_histogram
 
 RUN = "scored"
 N_RANK = 500  # particles per rank, 2 ranks

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import free_port
-
-from protocol.session import (
+from minority.protocol.session import (
     CHUNK_QOS,
     CONTROL_QOS,
     DEFAULT_ENDPOINT,

@@ -2,9 +2,8 @@
 
 import numpy as np
 import pytest
-
-from sim.columns import ColumnSpec, channel_column
-from sim.driver import Simulator
+from minority.sim.columns import ColumnSpec, channel_column
+from minority.sim.driver import Simulator
 
 # Tolerances, one table.
 TOL = {
@@ -71,7 +70,7 @@ def test_extreme_column(name):
 
 @pytest.mark.slow
 def test_block_thrown_at_wall_at_10_m_s():
-    from sim.scene import loads_scene
+    from minority.sim.scene import loads_scene
 
     text = _bodies_toml((0.2, 0.04, 0.04), (0.28, 0.12, 0.12), (-10.0, 0.0, 0.0),
                         (0.0, 0.0, -9.81))
@@ -82,7 +81,7 @@ def test_block_thrown_at_wall_at_10_m_s():
 
 @pytest.mark.slow
 def test_single_particle_falls_and_rests():
-    from sim.scene import loads_scene
+    from minority.sim.scene import loads_scene
 
     text = _bodies_toml((0.2, 0.07, 0.1), (0.21, 0.08, 0.11), (0.5, 0.0, 0.0),
                         (0.0, 0.0, -9.81))

@@ -4,9 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from numba import njit
-
-from sim.plasticity import (
+from minority.sim.plasticity import (
     SERIES_MAX_Y,
     dp_project,
     dp_project_numpy,
@@ -15,8 +13,9 @@ from sim.plasticity import (
     elastoplastic_update_scalar,
     elastoplastic_update_series,
 )
-from sim.scene import DPCone, Material
-from sim.svd import svd3, sym_eig3_scalar
+from minority.sim.scene import DPCone, Material
+from minority.sim.svd import svd3, sym_eig3_scalar
+from numba import njit
 
 # tolerances (absolute, on O(1) quantities)
 SVD_TOL = 1e-12

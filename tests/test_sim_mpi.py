@@ -17,15 +17,14 @@ import h5py
 import numpy as np
 import pytest
 from conftest import free_port
-
-from protocol.log import read_log
-from protocol.messages import speed_histogram
-from protocol.view import Window
-from sim.decomp import DEFAULT_REBALANCE_EVERY, balanced_starts
-from sim.driver import Simulator
-from sim.publish import STATS_EVERY_S
-from sim.runner import run_scene
-from sim.scene import load_scene
+from minority.protocol.log import read_log
+from minority.protocol.messages import speed_histogram
+from minority.protocol.view import Window
+from minority.sim.decomp import DEFAULT_REBALANCE_EVERY, balanced_starts
+from minority.sim.driver import Simulator
+from minority.sim.publish import STATS_EVERY_S
+from minority.sim.runner import run_scene
+from minority.sim.scene import load_scene
 
 TIMEOUT_S = 180
 # A sand block thrown along x at 3 m/s while it collapses: in 0.03 s it crosses several

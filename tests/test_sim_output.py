@@ -10,10 +10,9 @@ import sys
 import h5py
 import numpy as np
 import pytest
-
-from sim.output import FORMAT, PARTICLE_TYPE_SAND, open_trajectory
-from sim.runner import run_scene
-from sim.scene import builtin_scene_path, load_scene
+from minority.sim.output import FORMAT, PARTICLE_TYPE_SAND, open_trajectory
+from minority.sim.runner import run_scene
+from minority.sim.scene import builtin_scene_path, load_scene
 
 KILL_AFTER_FRAMES = 3
 

@@ -17,23 +17,22 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import fail_call, free_port
+from minority.protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
+from minority.protocol.log import LogTruncatedWarning, read_log
+from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, speed_histogram
+from minority.protocol.session import Inbox, NetworkOptions, Role, open_session
+from minority.protocol.spec import DataRequest, Region
+from minority.protocol.view import Window
+from minority.protocol.wire import decode
+from minority.render_server.daemon import RenderServer, ServerOptions
+from minority.sim.driver import Simulator
+from minority.sim.outbox import CONTROL, STATS, Outbox, OutboxItem
+from minority.sim.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
+from minority.sim.publish import PublishOptions, record_path
+from minority.sim.ranks import RankRunConfig, run_ranks
+from minority.sim.scene import builtin_scene_path, load_scene
+from minority.sim.state import PARTICLE_FIELDS, seed_particles
 from test_loopback import wait_until
-
-from protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
-from protocol.log import LogTruncatedWarning, read_log
-from protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, speed_histogram
-from protocol.session import Inbox, NetworkOptions, Role, open_session
-from protocol.spec import DataRequest, Region
-from protocol.view import Window
-from protocol.wire import decode
-from render_server.daemon import RenderServer, ServerOptions
-from sim.driver import Simulator
-from sim.outbox import CONTROL, STATS, Outbox, OutboxItem
-from sim.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
-from sim.publish import PublishOptions, record_path
-from sim.ranks import RankRunConfig, run_ranks
-from sim.scene import builtin_scene_path, load_scene
-from sim.state import PARTICLE_FIELDS, seed_particles
 
 RUN = "test-run"
 TINY = builtin_scene_path("tiny")  # 0.1 m column at x in [0, 0.1] m
@@ -288,7 +287,7 @@ def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_co
     bound), step 3 and step 4 (not put while stalled) are dropped_stalled; the server
     answers the probe again and step 5 is sent and confirmed. `sent` never exceeds what the
     subscriber received."""
-    from sim import publish
+    from minority.sim import publish
 
     spec = Spec.from_dict(spec_dict(every_steps=1))
     answering = threading.Event()
@@ -364,8 +363,8 @@ def test_every_field_the_sim_offers_has_the_declared_shape(name):
 
 
 def test_an_error_mid_run_is_published_as_an_event(tmp_path, monkeypatch):
-    from sim.decomp import SlabSimulator
-    from sim.driver import NonFiniteError
+    from minority.sim.decomp import SlabSimulator
+    from minority.sim.driver import NonFiniteError
 
     step = SlabSimulator.step
 
@@ -615,7 +614,7 @@ def test_stats_every_s_must_be_a_time():
 def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpoint, tmp_path):
     """The server's session listens before its spec queryable exists (it is warming up):
     the rank keeps asking within --wait and follows the served spec, not the file."""
-    from sim.publish import RankPublisher
+    from minority.sim.publish import RankPublisher
 
     served = Spec.from_dict(spec_dict(every_steps=7))
     spec_file = tmp_path / "spec.json"
@@ -643,7 +642,7 @@ def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpo
 def test_a_record_write_error_is_counted_and_publishing_goes_on(tmp_path):
     """A full disk under the rank's record: the record ends there, what it missed is counted
     and said once, and the sender thread keeps going (it used to die, the outbox filling)."""
-    from sim.publish import RankPublisher
+    from minority.sim.publish import RankPublisher
 
     log = io.StringIO()
     pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)),

@@ -1,10 +1,9 @@
 """Scene loading: shipped scenes, particle counts, errors that name the bad key."""
 
 import pytest
-
-from sim.columns import ColumnSpec, channel_column_toml
-from sim.scene import SCENES_DIR, SceneError, Shape, builtin_scene_path, load_scene, loads_scene
-from sim.state import seed_particles
+from minority.sim.columns import ColumnSpec, channel_column_toml
+from minority.sim.scene import SCENES_DIR, SceneError, Shape, builtin_scene_path, load_scene, loads_scene
+from minority.sim.state import seed_particles
 
 SHIPPED_COUNTS = {"tiny": 400, "cylinder_small": 1344, "column_13k": 12_960,
                   "column_100k": 103_680}

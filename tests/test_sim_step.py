@@ -3,13 +3,12 @@
 import numba
 import numpy as np
 import pytest
-
-from sim import kernels
-from sim.columns import ColumnSpec, channel_column
-from sim.driver import NonFiniteError, Simulator, TimeStepError
-from sim.reference import ReferenceState, reference_step
-from sim.scene import builtin_scene_path, load_scene, loads_scene
-from sim.state import PARTICLE_FIELDS, seed_particles
+from minority.sim import kernels
+from minority.sim.columns import ColumnSpec, channel_column
+from minority.sim.driver import NonFiniteError, Simulator, TimeStepError
+from minority.sim.reference import ReferenceState, reference_step
+from minority.sim.scene import builtin_scene_path, load_scene, loads_scene
+from minority.sim.state import PARTICLE_FIELDS, seed_particles
 
 # Tolerances, one table (float64 state).
 TOL = {

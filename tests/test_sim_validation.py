@@ -23,9 +23,8 @@ import time
 
 import numpy as np
 import pytest
-
-from sim.columns import ColumnSpec, channel_column
-from sim.driver import Simulator
+from minority.sim.columns import ColumnSpec, channel_column
+from minority.sim.driver import Simulator
 
 # Tolerances, one table: relative error allowed against the laboratory law.
 TOL = {
@@ -110,7 +109,7 @@ def sliding_sheet(dx: float, thickness_cells: float, v0: float = 1.0, mu: float 
     """A sand sheet (0.1 m long, `thickness_cells` cells thick, 2 cells wide between smooth
     side walls) launched along a floor of Coulomb coefficient mu at v0 (m/s); returns the
     mean travel (m) once it rests and the largest speed left (m/s)."""
-    from sim.scene import loads_scene
+    from minority.sim.scene import loads_scene
 
     width, length = 2 * dx, 0.1
     text = f"""

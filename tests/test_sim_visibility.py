@@ -5,13 +5,12 @@ kept ones, through the server's own ray caster, and requires identical pixels.""
 
 import numpy as np
 import pytest
-
-from protocol.errors import SpecError
-from protocol.spec import Camera, Region, Spec, View, Window, inside_mask
-from render_server.render import prepare, render
-from sim.payload import cull
-from sim.state import ParticleState
-from sim.visibility import visible_mask
+from minority.protocol.errors import SpecError
+from minority.protocol.spec import Camera, Region, Spec, View, Window, inside_mask
+from minority.render_server.render import prepare, render
+from minority.sim.payload import cull
+from minority.sim.state import ParticleState
+from minority.sim.visibility import visible_mask
 
 SPACING = 0.01  # m
 RADIUS = 0.5 * SPACING

@@ -14,12 +14,11 @@ import pytest
 import zenoh
 from conftest import make_chunk
 from mcap.reader import make_reader
+from minority.protocol import Event, EventKind, Spec, Timing, keys
+from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
+from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import TIMEOUT_S, wait_until
 from test_render_daemon import EveryStep, spec
-
-from protocol import Event, EventKind, Spec, Timing, keys
-from protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
-from render_server.daemon import RenderServer, ServerOptions
 
 pytestmark = pytest.mark.slow
 

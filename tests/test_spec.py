@@ -5,8 +5,7 @@ import math
 
 import pytest
 from conftest import make_spec
-
-from protocol import Spec, SpecError, Window
+from minority.protocol import Spec, SpecError, Window
 
 
 def base() -> dict:

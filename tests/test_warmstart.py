@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from minority.gns.predict import predict
+from minority.gns.rollout import initial_state
+from minority.gns.train import load_checkpoint
 
-from gns.predict import predict
-from gns.rollout import initial_state
-from gns.train import load_checkpoint
 from minority.demo import CHECKPOINT, DemoOptions, demo_column
 from minority.warmstart import mpm_history
 

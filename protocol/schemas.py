@@ -20,7 +20,14 @@ _VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
 
 
 def _obj(props: dict, required: list[str] | None = None) -> dict:
-    return {"type": "object", "properties": props, "required": required or list(props)}
+    """A closed object: exactly `props` may appear; `required` lists those that must (None:
+    all of them; [] none)."""
+    return {"type": "object", "properties": props,
+            "required": list(props) if required is None else required,
+            "additionalProperties": False}
+
+
+_OPEN_OBJECT = {"type": "object"}  # free-form (provenance, event detail)
 
 
 _CAMERA = _obj({"position": _VEC3, "focal_point": _VEC3, "view_up": _VEC3,
@@ -28,11 +35,16 @@ _CAMERA = _obj({"position": _VEC3, "focal_point": _VEC3, "view_up": _VEC3,
                 "parallel_scale_m": _NUM}, ["position", "focal_point"])
 _WINDOW = _obj({"t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT,
                 "every_s": _NUM, "regions": {"type": "array", "items": _STR}}, [])
+_COLORMAP = _obj({"Name": _STR, "ColorSpace": _STR, "RGBPoints": {"type": "array", "items": _NUM},
+                  "NanColor": _VEC3}, ["RGBPoints"])
 _VIEW = _obj({"name": _STR, "camera": _CAMERA, "width": _INT, "height": _INT,
               "background": _VEC3, "field": _STR,
-              "colormap": {"type": ["string", "object"]},
+              "colormap": {"oneOf": [_STR, _COLORMAP]},
               "range": {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2},
-              "decimate": _INT, "schedule": {"type": "array", "items": _WINDOW}},
+              "decimate": _INT, "occlusion_cull": {"type": "boolean"},
+              "schedule": {"type": "array", "items": _WINDOW, "minItems": 1},
+              # version 1 shorthand of a one-window schedule
+              **{k: v for k, v in _WINDOW["properties"].items()}},
              ["name", "camera"])
 _REGION = _obj({"name": _STR, "lo_m": _VEC3, "hi_m": _VEC3})
 
@@ -52,7 +64,7 @@ JSON_SCHEMAS: dict[str, dict] = {
                                {"name": _STR, "time_s": _NUM, "tolerance_s": _NUM})},
                            "budget": _obj({"frames": {"type": ["integer", "null"]},
                                            "bytes": {"type": ["integer", "null"]}}, []),
-                           "provenance": {"type": "object"}},
+                           "provenance": _OPEN_OBJECT},
                           ["version", "run", "views"]),
     "minority.Timing": _obj({"run": _STR, "step": _INT, "view": _STR, "time_s": _NUM,
                              "receive_s": _NUM, "setup_s": _NUM, "render_s": _NUM,
@@ -60,7 +72,7 @@ JSON_SCHEMAS: dict[str, dict] = {
                              "ranks_received": _INT, "incomplete": {"type": "boolean"}}),
     "minority.Event": _obj({"run": _STR, "event": {"enum": ["run_start", "rank_done",
                                                             "run_end", "error"]},
-                            "rank": _INT, "message": _STR, "detail": {"type": "object"}}),
+                            "rank": _INT, "message": _STR, "detail": _OPEN_OBJECT}),
     "minority.Stats": _obj({"run": _STR, "rank": _INT, "step": _INT, "time_s": _NUM,
                             "count": _INT, "speed_sq_sum_m2_s2": _NUM, "max_speed_m_s": _NUM,
                             "max_displacement_m": _NUM, "windows_open": {"type": "boolean"},

@@ -34,3 +34,7 @@ def test_small_demo_runs_end_to_end_and_replays_identically(tmp_path, capsys):
     for png in frames:
         again = tmp_path / "again" / png.parent.name / png.name
         np.testing.assert_array_equal(np.asarray(Image.open(again)), np.asarray(Image.open(png)))
+    from test_schemas import validate_log
+
+    counts = validate_log(out / "run.mcap")  # every JSON message against its stored schema
+    assert counts["minority.Spec"] >= 1 and counts["foxglove.CompressedImage"] == len(frames)

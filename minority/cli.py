@@ -98,9 +98,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         specs = [Spec.load(path) for path in args.spec]
-    except (SpecError, OSError) as exc:
+    except (SpecError, OSError) as exc:  # bad input: exit 2
         print(f"minority serve: error: {exc}", file=sys.stderr)
-        return 1
+        return 2
     runs = [s.run for s in specs]
     if len(set(runs)) < len(runs):
         print(f"minority serve: error: two specs name the same run ({', '.join(runs)}); a "
@@ -158,7 +158,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     if args.ranks is not None and args.ranks < 1:
         print("minority sim: error: --ranks must be at least 1", file=sys.stderr)
-        return 1
+        return 2
     if not under_launcher() and (args.ranks or 1) > 1:
         return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
     try:
@@ -181,7 +181,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             raise ValueError(f"--ranks {args.ranks}, but the launcher started "
                              f"{MPI.COMM_WORLD.Get_size()} processes")
         summary = run_ranks(config)
-    except (SceneError, SimulationError, ValueError, OSError) as exc:
+    except SceneError as exc:  # bad input: exit 2
+        print(f"minority sim: error: {exc}", file=sys.stderr)
+        return 2
+    except (SimulationError, ValueError, OSError) as exc:
         print(f"minority sim: error: {exc}", file=sys.stderr)
         return 1
     if MPI.COMM_WORLD.Get_rank() == 0:
@@ -256,12 +259,6 @@ def _replay_publish(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    if args.log == "score":
-        return _cmd_score(args)
-    if args.operands:
-        print(f"minority report: error: one log at a time (extra: {' '.join(args.operands)})",
-              file=sys.stderr)
-        return 2
     from minority.report import ReportError, report
 
     try:
@@ -283,11 +280,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
     from minority.protocol.spec import Spec
     from minority.score import ScoreError, load_run, markdown, score
 
-    if len(args.operands) != 2:
-        print("minority report score: usage: minority report score SPEC.json RUN.mcap "
-              "[--out DIR]", file=sys.stderr)
-        return 2
-    spec_path, log_path = (Path(a) for a in args.operands)
+    spec_path, log_path = Path(args.spec), Path(args.log)
     try:
         spec = Spec.load(spec_path)
         if not log_path.is_file():
@@ -325,6 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="minority",
         description="In situ visualization of particle simulations, steered by a graph "
                     "network oracle. Units: metres, seconds, kilograms, pascals, degrees.")
+    parser.add_argument("--version", action="version", version=f"minority {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("serve", help="run the render server daemon",
@@ -448,11 +442,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "status 2 on bad input (no such file, not MCAP, no timing "
                                    "records), 1 when a file cannot be read or written. "
                                    "`minority report score SPEC.json RUN.mcap [--out DIR]`: the "
-                                   "oracle's predictions (events, displacement, regions, "
-                                   "frames in the critical windows, bytes) against the run's "
-                                   "in situ statistics, markdown (and score.json with --out).")
+                                   "oracle's predictions against the run (see `minority report "
+                                   "score --help`).")
     p.add_argument("log", metavar="RUN.mcap", help="MCAP log of the run")
-    p.add_argument("operands", nargs="*", help=argparse.SUPPRESS)  # of `report score`
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="directory for the PNG plots (default: the log's directory)")
     p.add_argument("--no-plots", action="store_true", help="write no PNG, only the markdown")
@@ -501,9 +493,48 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def score_parser() -> argparse.ArgumentParser:
+    """`minority report score` (a word after `report`, so its own parser: argparse cannot
+    mix a subcommand with the report's positional log)."""
+    p = argparse.ArgumentParser(
+        prog="minority report score",
+        description="Score the oracle's predictions (events, displacement, regions, frames in "
+                    "the critical windows, bytes) against the run's in situ statistics "
+                    "(Stats messages of its log): markdown on stdout, and score.json with "
+                    "--out. Exit status 2 on bad input, 1 when a file cannot be written.")
+    p.add_argument("spec", metavar="SPEC.json", help="the oracle spec")
+    p.add_argument("log", metavar="RUN.mcap", help="the MCAP log of the run it predicted")
+    p.add_argument("--out", type=Path, metavar="DIR", help="also write DIR/score.json")
+    p.set_defaults(func=_cmd_score)
+    return p
+
+
+def _own_parsers(parser: argparse.ArgumentParser) -> None:
+    """Give every (sub)parser's namespace the parser that parsed it (the innermost wins)."""
+    parser.set_defaults(_parser=parser)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _own_parsers(sub)
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("minority")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        return "unknown (not installed)"
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    parser = score_parser() if argv[:2] == ["report", "score"] else build_parser()
+    _own_parsers(parser)
+    args, extra = parser.parse_known_args(argv[2:] if argv[:2] == ["report", "score"] else argv)
+    if extra:  # said by the subcommand's parser, with its usage (not the top level's)
+        args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.argv = argv  # `minority sim --ranks N` re-runs itself under mpiexec
     return args.func(args)
 

@@ -4,27 +4,7 @@ import json
 import subprocess
 import sys
 
-import pytest
-
 from minority.cli import build_parser, main
-
-SUBCOMMANDS = ["serve", "sim", "oracle", "replay", "report", "record", "demo"]
-
-
-def test_top_level_help_lists_every_subcommand(capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(["--help"])
-    assert exc.value.code == 0
-    out = capsys.readouterr().out
-    assert all(name in out for name in SUBCOMMANDS)
-
-
-@pytest.mark.parametrize("name", SUBCOMMANDS)
-def test_subcommand_help(name, capsys):
-    with pytest.raises(SystemExit) as exc:
-        main([name, "--help"])
-    assert exc.value.code == 0
-    assert "usage: minority " + name in capsys.readouterr().out
 
 
 def test_network_flags_are_shared():
@@ -54,7 +34,7 @@ def test_sim_runs_a_shipped_scene(tmp_path, capsys):
 
 
 def test_sim_bad_scene_and_unstable_dt_fail_clearly(tmp_path, capsys):
-    assert main(["sim", "no_such_scene", "--quiet"]) == 1
+    assert main(["sim", "no_such_scene", "--quiet"]) == 2  # bad input
     assert "no shipped scene 'no_such_scene'" in capsys.readouterr().err
     assert main(["sim", "tiny", "--dt", "1", "--out", str(tmp_path / "x.h5"), "--quiet"]) == 1
     assert "exceeds the stable bound" in capsys.readouterr().err

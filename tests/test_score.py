@@ -139,6 +139,8 @@ def test_cli_report_score(tmp_path, capsys):
     assert scored == alone and scored["frames"]["oracle"] == 20
     with pytest.raises(ValueError, match="no stats records of run 'nobody'"):
         load_run(tmp_path / "run.mcap", "nobody")
-    assert main(["report", "score", str(tmp_path / "spec.json")]) == 2
+    with pytest.raises(SystemExit) as usage:  # argparse: the usage, exit status 2
+        main(["report", "score", str(tmp_path / "spec.json")])
+    assert usage.value.code == 2 and "usage: minority report score" in capsys.readouterr().err
     assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "no.mcap")]) == 2
     assert "no.mcap: no such file" in capsys.readouterr().err

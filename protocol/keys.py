@@ -1,4 +1,4 @@
-"""Zenoh key expressions of ARCHITECTURE.md, in one place.
+"""Zenoh key expressions of docs/architecture.md, in one place.
 
     minority/{run}/spec                 queryable served by the render server (updates are put)
     minority/{run}/chunk/{step}/{rank}  a particle chunk

@@ -1,4 +1,4 @@
-"""Key expressions of ARCHITECTURE.md and their parsing."""
+"""Key expressions of docs/architecture.md and their parsing."""
 
 import pytest
 from minority.protocol import keys

@@ -34,7 +34,7 @@ TOL = {
     "convergence_rel": 0.15,  # normalized runout, dx vs dx / 2
 }
 L0_M = 0.1  # column length, m
-MIN_CELLS = 10  # resolve min(L0, H0) with at least this many cells (see the README)
+MIN_CELLS = 10  # resolve min(L0, H0) with at least this many cells (see sim/README.md)
 WIDTH_M = 0.02  # channel width, m (2 cells at the coarse resolution)
 FRICTION_DEG = 30.0
 FLOOR_FRICTION = 0.5

@@ -220,7 +220,10 @@ def test_bad_input_fails_in_one_line(tmp_path, capsys):
     assert main(["report", str(tmp_path / "two.mcap"), "--run", "r2", "--no-plots"]) == 0
     assert "run `r2`" in capsys.readouterr().out
     assert main(["report", str(tmp_path / "two.mcap"), "--run", "r3"]) == 2
-    assert main(["report", str(tmp_path / "two.mcap"), "extra.mcap"]) == 2
+    with pytest.raises(SystemExit) as usage:  # one log at a time: argparse's usage, status 2
+        main(["report", str(tmp_path / "two.mcap"), "extra.mcap"])
+    assert usage.value.code == 2
+    assert "usage: minority report" in capsys.readouterr().err
 
 
 def test_cli_bad_input_has_no_traceback(tmp_path):

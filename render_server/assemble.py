@@ -53,7 +53,6 @@ class AssembledStep:
     receive_s: float  # earliest send of the step's chunks to assembled, s (see _release)
     incomplete: bool
     prev_time_s: float | None = None  # simulated time of the step before, s (None: unknown)
-    instance: int = 0  # which run of its run id it belongs to (StepAssembler.instance)
 
 
 @dataclass
@@ -68,8 +67,7 @@ class AssemblyStats:
 
 class StepAssembler:
     def __init__(self, timeout_s: float = DEFAULT_TIMEOUT_S, max_pending: int = DEFAULT_MAX_PENDING,
-                 max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES, instance: int = 0):
-        self.instance = instance  # copied into every AssembledStep
+                 max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
         self.timeout_ns = int(timeout_s * 1e9)
         self.max_pending = max_pending
         self.max_pending_bytes = max_pending_bytes
@@ -176,5 +174,4 @@ class StepAssembler:
             positions=join([c.positions for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
             nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
-            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev,
-            instance=self.instance)
+            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev)

@@ -71,11 +71,11 @@ class LatestStep:
 
     def put(self, step: AssembledStep) -> None:
         """Offer a step; an older step than the one waiting is the one dropped (steps may be
-        released out of order; a later run of the run id is newer than every earlier one)."""
+        released out of order)."""
         with self._cond:
             if self._step is not None:
                 self.replaced += 1
-                if (self._step.instance, self._step.step) > (step.instance, step.step):
+                if self._step.step > step.step:
                     return
             self._step = step
             self._cond.notify()
@@ -119,13 +119,10 @@ class RenderServer:
         self._latest = LatestStep()
         self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
         self._tokens: queue.SimpleQueue = queue.SimpleQueue()  # (rank, alive, monotonic ns)
-        self._instances: dict[int, RunInstance] = {}  # not yet finished, by seq
-        self._instance: RunInstance | None = None  # the newest
-        self._last: RunInstance | None = None  # the newest, kept after it finished
+        # the newest run; the next opens only once it has finished, so at most one is open
+        self._run: RunInstance | None = None
         self._seq = 0
         self.between_runs = 0  # rank messages that came when no run was open: not logged
-        # set while no run is open (the last one ended: every rank done, last step rendered)
-        self.finished = threading.Event()
         culled = [v.name for v in self.spec.views if v.occlusion_cull]
         if options.shadows and culled:
             print(f"minority serve: views {', '.join(culled)} have occlusion_cull: the sim "
@@ -154,12 +151,17 @@ class RenderServer:
     @property
     def current(self) -> RunInstance:
         """The open run (or the last one, once it ended): its name, frame directory, log."""
-        return self._last
+        return self._run
+
+    @property
+    def finished(self) -> threading.Event:
+        """Set once the newest run has ended (every rank done, its last step rendered)."""
+        return self._run.finished
 
     @property
     def stats(self) -> ServerStats:
         """The counters of the open run (or of the last one, once it ended)."""
-        return self._last.stats
+        return self._run.stats
 
     # --- zenoh callbacks (enqueue or small work only) ---------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
@@ -184,13 +186,11 @@ class RenderServer:
                     raise
                 self._error(f"cannot open the log {log_path}: {exc}; this run is not logged")
         self._seq += 1
-        inst = RunInstance(self._seq, name, o.out_dir / name, writer,
-                           StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes,
-                                         instance=self._seq))
-        self._instances[inst.seq] = self._instance = self._last = inst
-        self.finished.clear()
+        inst = self._run = RunInstance(
+            self._seq, name, o.out_dir / name, writer,
+            StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes))
         if self._log is not None:
-            self._log.put(writer, keys.spec(self.run), self.spec.encode(), time.time_ns(),
+            self._log.put(writer, keys.spec(self.run), self._spec_payload, time.time_ns(),
                           self.spec)
         self._publish_event(inst, EventKind.RUN_START,
                             f"render server up, {len(self.spec.views)} views", {"name": name})
@@ -199,28 +199,23 @@ class RenderServer:
     def _active(self) -> RunInstance | None:
         """The run a rank's chunk or new token belongs to: the open one, or a new one once
         the last has ended (waiting, bounded by the stop, for its last step's render)."""
-        inst = self._instance
-        if inst is not None and not inst.drained:
+        inst = self._run
+        if not inst.drained:
             return inst
-        while inst is not None and not inst.finished.wait(RECEIVE_POLL_S):
+        while not inst.finished.wait(RECEIVE_POLL_S):
             if self._stop.is_set():
                 return None
         return self._open_instance()
 
     def _current(self) -> RunInstance | None:
         """The open run for a rank's other messages (events, stats); None between runs."""
-        inst = self._instance
-        return inst if inst is not None and not inst.drained else None
+        return None if self._run.drained else self._run
 
     def _finish_instance(self, inst: RunInstance) -> None:
         """The run's last step is rendered: say so, close its log."""
         self._publish_event(inst, EventKind.RUN_END, "run ended", self._summary(inst))
         if self._log is not None:
             self._log.close_writer(inst.writer)
-        self._instances.pop(inst.seq, None)
-        if self._instance is inst:
-            self._instance = None
-            self.finished.set()
         inst.finished.set()
 
     # --- threads --------------------------------------------------------------------
@@ -297,9 +292,8 @@ class RenderServer:
                 r = chunk.rank
                 inst.chunks_received[r] = inst.chunks_received.get(r, 0) + 1
                 self._release(inst.assembler.add(chunk, item.recv_ns, len(item.payload)))
-        for inst in list(self._instances.values()):
-            if inst.drained:
-                continue
+        inst = self._run
+        if not inst.drained:
             self._release(inst.assembler.expire(now))
             self._settle_gone_ranks(inst)
             if item is None and inst.all_gone():
@@ -335,19 +329,14 @@ class RenderServer:
                 try:
                     self.render_step(step)
                 except Exception as exc:  # noqa: BLE001 - keep serving the next steps
-                    self._instance_of(step).stats.view_errors += 1
+                    self._run.stats.view_errors += 1
                     self._error(f"step {step.step} failed to render: {exc!r}")
-            elif self._latest.empty():
-                for inst in list(self._instances.values()):
-                    if inst.drained:  # every rank is done and its last step rendered
-                        self._finish_instance(inst)
-
-    def _instance_of(self, step: AssembledStep) -> RunInstance:
-        return self._instances.get(step.instance) or self._last
+            elif self._latest.empty() and self._run.drained and not self._run.finished.is_set():
+                self._finish_instance(self._run)  # every rank is done, its last step rendered
 
     def render_step(self, step: AssembledStep) -> None:
         """Render every view the schedule asks for at this step; publish frames and timing."""
-        inst = self._instance_of(step)
+        inst = self._run
         results = render_views(step, self.spec, self._canvases, self.options.shadows)
         if not results:
             return
@@ -392,13 +381,13 @@ class RenderServer:
 
     def _error(self, message: str) -> None:
         """Log an error and publish it as an event, at most one per interval."""
-        if self._last is not None:
-            self._last.stats.last_error = message
+        if self._run is not None:
+            self._run.stats.last_error = message
         self._errors_unreported += 1
         now = time.monotonic()
         if now - self._last_error_event >= ERROR_EVENT_INTERVAL_S:
             print(f"minority serve: {message}", file=sys.stderr, flush=True)
-            self._publish_event(self._current() or self._last, EventKind.ERROR, message,
+            self._publish_event(self._run, EventKind.ERROR, message,
                                 {"errors": self._errors_unreported})
             self._errors_unreported = 0
             self._last_error_event = now
@@ -421,10 +410,10 @@ class RenderServer:
 
     def summary(self) -> dict:
         """The counters of the open run (or of the last one)."""
-        return self._summary(self._last)
+        return self._summary(self._run)
 
     def close(self) -> None:
-        """Stop, render nothing more, end the open runs, close the logs (idempotent)."""
+        """Stop, render nothing more, end the open run, close the logs (idempotent)."""
         if self._stop.is_set():
             return
         self._stop.set()
@@ -434,7 +423,7 @@ class RenderServer:
         self._side.close()
         self._token_sub.undeclare()
         self._queryable.undeclare()
-        for inst in list(self._instances.values()):
-            self._finish_instance(inst)
+        if not self._run.finished.is_set():
+            self._finish_instance(self._run)
         if self._log is not None:
             self._log.stop()

@@ -7,6 +7,12 @@
     minority/{run}/timing               timing records
     minority/{run}/event                lifecycle events
     minority/{run}/stats                per-rank flow statistics (for scoring the oracle)
+
+and the MCAP log topics the recorder files them under (step, rank live in the payload):
+
+    minority/{run}/{kind}               spec, chunk, timing, event, stats
+    minority/{run}/frame/{view}         frames, one topic per view
+    minority/_rejected                  malformed messages, with the reason
 """
 
 from __future__ import annotations
@@ -90,8 +96,7 @@ class ParsedKey:
     @property
     def log_topic(self) -> str:
         """MCAP topic: per view for frames, per kind otherwise (step/rank live in the payload)."""
-        base = f"{ROOT}/{self.run}/{self.topic}"
-        return f"{base}/{self.rest[0]}" if self.topic == Topic.FRAME else base
+        return log_topic(self.run, self.topic, self.rest[0] if self.topic == Topic.FRAME else None)
 
 
 _ARITY = {Topic.SPEC: 0, Topic.CHUNK: 2, Topic.RANK: 1, Topic.FRAME: 1, Topic.TIMING: 0,
@@ -109,3 +114,48 @@ def parse(key: str) -> ParsedKey | None:
     if not all(check.NAME_RE.match(p) for p in rest):
         return None
     return ParsedKey(parts[1], parts[2], rest)
+
+
+# --- MCAP log topics ----------------------------------------------------------------------
+REJECTED_LOG_TOPIC = f"{ROOT}/_rejected"  # malformed messages of every run, with the reason
+ALL_VIEWS = "*"
+LOGGED = (Topic.SPEC, Topic.CHUNK, Topic.FRAME, Topic.TIMING, Topic.EVENT, Topic.STATS)
+
+
+@dataclass(frozen=True)
+class LogTopic:
+    """A parsed MCAP log topic (REJECTED_LOG_TOPIC is not one: it belongs to no run)."""
+
+    run: str
+    kind: str  # one of LOGGED
+    view: str | None = None  # frames only
+
+    def __str__(self) -> str:
+        return log_topic(self.run, self.kind, self.view)
+
+
+def log_topic(run: str, kind: str, view: str | None = None) -> str:
+    """The topic the recorder logs a message of `kind` under; `run` ALL_RUNS or `view`
+    ALL_VIEWS make a read_log pattern (frames: `view` None is every view)."""
+    if kind not in LOGGED:
+        raise ValueError(f"kind {kind!r} is not logged (one of {', '.join(LOGGED)})")
+    base = f"{ROOT}/{_run(run)}/{kind}"
+    if kind != Topic.FRAME:
+        if view is not None:
+            raise ValueError(f"only frames have a view in their log topic, not {kind}")
+        return base
+    view = ALL_VIEWS if view is None else view
+    return f"{base}/{view if view == ALL_VIEWS else check.name(view, 'view')}"
+
+
+def parse_log_topic(topic: str) -> LogTopic | None:
+    """Split a concrete log topic; None when it is not one of ours (REJECTED_LOG_TOPIC,
+    patterns and foreign topics included)."""
+    parts = str(topic).split("/")
+    if len(parts) < 3 or parts[0] != ROOT or parts[2] not in LOGGED:
+        return None
+    if len(parts) != (4 if parts[2] == Topic.FRAME else 3):
+        return None
+    if not all(check.NAME_RE.match(p) for p in (parts[1], *parts[3:])):
+        return None
+    return LogTopic(parts[1], parts[2], parts[3] if len(parts) == 4 else None)

@@ -1,4 +1,5 @@
-"""MCAP logging: a writer usable in any process, the `minority record` recorder, a reader.
+"""MCAP logging: a writer usable in any process and the `minority record` recorder (the reader
+is protocol.logread; its names are importable from here too).
 
 Topics are per run and kind (`minority/{run}/chunk`, `.../frame/{view}`, `.../timing`, ...);
 step and rank live in each chunk's payload. Chunks are stored byte-for-byte as received
@@ -13,24 +14,27 @@ with SIGKILL leaves a file whose completed chunks the reader still returns.
 from __future__ import annotations
 
 import base64
-import fnmatch
 import json
-import os
 import struct
 import sys
 import threading
 import time
-import warnings
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-from mcap.records import Channel, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
+from minority.protocol.logread import (  # noqa: F401 - the reader's names, importable from here
+    MCAP_MAGIC,
+    LogDamagedWarning,
+    LogNote,
+    LogRecord,
+    LogTruncatedWarning,
+    read_log,
+    read_log_noting,
+    topic_counts,
+)
 from minority.protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
 from minority.protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
 from minority.protocol.session import Inbox
@@ -38,12 +42,10 @@ from minority.protocol.spec import Spec
 from minority.protocol.wire import PREFIX_SIZE, SENT_NS_OFFSET
 
 PROFILE = "minority"
-REJECTED_TOPIC = f"{keys.ROOT}/_rejected"
+REJECTED_TOPIC = keys.REJECTED_LOG_TOPIC
 JSON_ENCODING = "json"
 _BY_TOPIC = {keys.Topic.CHUNK: Chunk, keys.Topic.SPEC: Spec, keys.Topic.FRAME: Frame,
              keys.Topic.TIMING: Timing, keys.Topic.EVENT: Event, keys.Topic.STATS: Stats}
-_BY_SCHEMA = {"minority.Chunk": Chunk, "minority.Spec": Spec, "foxglove.CompressedImage": Frame,
-              "minority.Timing": Timing, "minority.Event": Event, "minority.Stats": Stats}
 
 
 MAX_TIME_NS = (1 << 63) - 1  # log and publish times are u64 in MCAP; ours are non-negative i64
@@ -273,92 +275,3 @@ class Recorder:
         while (item := self._inbox.get(timeout=0)) is not None:
             self.writer.keep(self.writer.write_payload, item.key, item.payload, item.recv_ns)
         self.writer.finish()
-
-
-@dataclass(frozen=True)
-class LogRecord:
-    topic: str
-    log_ns: int
-    publish_ns: int
-    schema: str
-    data: bytes  # as stored: wire payload for chunks, JSON for the rest
-
-    def decode(self):
-        """The message object (Chunk, Frame, Spec, Timing, Event, Stats)."""
-        cls = _BY_SCHEMA.get(self.schema)
-        if cls is None:
-            raise ProtocolError(f"topic {self.topic!r} has schema {self.schema!r}, not a message")
-        if cls is Chunk:
-            return decode_as(self.data, Chunk)
-        try:
-            obj = json.loads(self.data)
-        except (ValueError, RecursionError) as exc:  # bad UTF-8, JSON, huge integers, nesting
-            raise ProtocolError(f"{self.topic}: stored JSON is invalid ({str(exc)[:200]})") from None
-        return cls.from_json(obj, self.publish_ns)
-
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first 8 bytes of every MCAP file
-
-
-class LogDamagedWarning(RuntimeWarning):
-    """read_log stopped at a damaged record inside a log (not at a cut-short tail)."""
-
-
-class LogTruncatedWarning(RuntimeWarning):
-    """read_log reached the end of a log that has no MCAP footer: its writer was killed (or
-    its disk filled) and the messages after its last complete chunk are not in the file."""
-
-
-def read_log(path: str | Path, topics: Iterable[str] | None = None,
-             start_ns: int | None = None, end_ns: int | None = None) -> Iterator[LogRecord]:
-    """Iterate stored messages in file order, filtered by topic (exact or glob, e.g.
-    `minority/*/chunk`) and log time in [start_ns, end_ns). A file cut short (a killed
-    recorder) yields every message of its completed chunks, then stops with a
-    LogTruncatedWarning; a damaged chunk inside the file (its CRC does not match) stops it
-    too, with a LogDamagedWarning. A file that is not MCAP raises ProtocolError."""
-    patterns = list(topics) if topics is not None else None
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    wanted: dict[int, bool] = {}
-    with open(path, "rb") as f:
-        magic = f.read(len(MCAP_MAGIC))
-        if len(magic) == len(MCAP_MAGIC) and magic != MCAP_MAGIC:
-            raise ProtocolError(f"{path}: not an MCAP file (no MCAP magic at its start)")
-        f.seek(0)
-        records = StreamReader(f, validate_crcs=True).records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                warnings.warn(f"{path}: the log ends without its MCAP footer (its writer was "
-                              "stopped); every message of its complete chunks was read",
-                              LogTruncatedWarning, stacklevel=2)
-                return
-            except Exception as exc:  # noqa: BLE001 - mcap, zstd and lz4 raise their own types
-                pos, size = f.tell(), os.fstat(f.fileno()).st_size
-                if pos < size:  # not a cut-short tail: a damaged record inside the file
-                    warnings.warn(f"{path}: unreadable record before byte {pos} of {size} "
-                                  f"({exc}); the rest of the file is not read",
-                                  LogDamagedWarning, stacklevel=2)
-                else:
-                    warnings.warn(f"{path}: the log is cut short at byte {size} (its writer "
-                                  "was killed); every message of its complete chunks was read",
-                                  LogTruncatedWarning, stacklevel=2)
-                return
-            if isinstance(record, Footer):
-                return
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-                wanted[record.id] = patterns is None or any(
-                    fnmatch.fnmatchcase(record.topic, p) for p in patterns)
-            elif isinstance(record, Message) and wanted.get(record.channel_id):
-                if start_ns is not None and record.log_time < start_ns:
-                    continue
-                if end_ns is not None and record.log_time >= end_ns:
-                    continue
-                channel = channels[record.channel_id]
-                schema = schemas.get(channel.schema_id)
-                yield LogRecord(channel.topic, record.log_time, record.publish_time,
-                                schema.name if schema else "", bytes(record.data))

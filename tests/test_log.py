@@ -179,3 +179,79 @@ def test_a_stored_json_record_that_cannot_be_parsed_is_a_protocol_error(data):
     record = LogRecord("minority/r/timing", 0, 0, "minority.Timing", data)
     with pytest.raises(ProtocolError, match="stored JSON is invalid"):
         record.decode()
+
+
+def write_mixed(path, compression=CompressionType.NONE, run="test-run"):
+    """Ten steps of two chunks, a timing and (every other step) a frame, one MCAP chunk per
+    step; log times step back once (a clock adjustment), so file order is not time order."""
+    from conftest import make_png
+
+    with LogWriter(path, compression=compression) as log:
+        for step in range(10):
+            t = 1_000 * step if step != 6 else 500  # step 6 arrives "before" step 1
+            for rank in range(2):
+                log.write(make_chunk(n=20, step=step, rank=rank, run=run), log_ns=t + rank)
+            log.write(Timing(run, step, "side", step * 1e-4, 0.01, 0.001, 0.002, 100, 40, 2, 2,
+                             False), log_ns=t + 5)
+            if step % 2:
+                log.write(Frame(run, "side", step, step * 1e-4, 4, 3, make_png()), log_ns=t + 6)
+            log.flush()
+
+
+@pytest.mark.parametrize("compression", list(CompressionType))
+@pytest.mark.parametrize("topics,start_ns,end_ns", [
+    (None, None, None), (["minority/*/timing"], None, None), (["*/frame/*"], None, None),
+    (["minority/test-run/chunk", "minority/test-run/frame/side"], 1_000, 7_000),
+    (["minority/nope/*"], None, None), (None, 4_000, 4_002)])
+def test_the_index_reads_the_same_messages_as_a_scan(tmp_path, compression, topics, start_ns,
+                                                     end_ns):
+    path = tmp_path / "m.mcap"
+    write_mixed(path, compression)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # complete: neither read warns
+        indexed = list(read_log(path, topics, start_ns, end_ns))
+        scanned = list(read_log(path, topics, start_ns, end_ns, use_index=False))
+    assert indexed == scanned  # same records, same (file) order
+    if topics == ["minority/*/timing"]:
+        assert [r.decode().step for r in indexed] == list(range(10))
+
+
+def test_a_read_of_some_topics_opens_only_the_chunks_holding_them(tmp_path, monkeypatch):
+    from minority.protocol import logread
+
+    path = tmp_path / "m.mcap"
+    write_mixed(path)
+    opened = []
+    real = logread.breakup_chunk
+    monkeypatch.setattr(logread, "breakup_chunk",
+                        lambda chunk, **kw: opened.append(chunk) or real(chunk, **kw))
+    frames = list(read_log(path, ["minority/test-run/frame/*"]))
+    assert [r.decode().step for r in frames] == [1, 3, 5, 7, 9] and len(opened) == 5
+    opened.clear()
+    assert len(list(read_log(path))) == 35 and len(opened) == 10
+
+
+def test_a_damaged_chunk_read_through_the_index_is_said(tmp_path):
+    path = tmp_path / "d.mcap"
+    write_mixed(path)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    third = sorted(c.chunk_start_offset + c.chunk_length for c in summary.chunk_indexes)[2]
+    data = bytearray(path.read_bytes())
+    data[third - 10] ^= 0xFF  # in the records of the third chunk (step 2)
+    path.write_bytes(bytes(data))
+    with pytest.warns(LogDamagedWarning, match="unreadable record"):
+        steps = [r.decode().step for r in read_log(path, ["*/timing"])]
+    assert steps == [0, 1]
+
+
+def test_topic_counts_come_from_the_summary(tmp_path):
+    from minority.protocol.log import topic_counts
+
+    path = tmp_path / "m.mcap"
+    write_mixed(path)
+    assert topic_counts(path) == {"minority/test-run/chunk": 20, "minority/test-run/timing": 10,
+                                  "minority/test-run/frame/side": 5}
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-100])  # no footer, no summary
+    assert topic_counts(cut) is None

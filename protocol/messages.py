@@ -7,13 +7,14 @@ every failure is a `ProtocolError` naming the problem.
 from __future__ import annotations
 
 import base64
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Annotated, ClassVar, Literal
 
 import msgspec
 import numpy as np
 from minority.protocol import check
+from minority.protocol.check import Name, NonNegative
 from minority.protocol.errors import ProtocolError
 from minority.protocol.spec import Spec
 from minority.protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
@@ -24,8 +25,8 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 POSITIONS = "positions"
 MAX_ABS_COORD_M = 1e12  # larger (or non-finite) header numbers are corrupt
 
-# Typed header metas of the hot-path messages, checked in C by msgspec on decode.
-Name = Annotated[str, msgspec.Meta(pattern=check.NAME_RE.pattern)]
+# Typed header metas, checked in C by msgspec on decode; the JSON Schemas stored in logs are
+# derived from them (protocol.schemas).
 Count = Annotated[int, msgspec.Meta(ge=0, le=1 << 40)]
 Seconds = Annotated[float, msgspec.Meta(ge=0.0, le=1e12)]
 Coord = Annotated[float, msgspec.Meta(ge=-MAX_ABS_COORD_M, le=MAX_ABS_COORD_M)]
@@ -187,69 +188,63 @@ def _check_png(png: bytes, width: int, height: int) -> None:
 
 
 class _JsonMessage:
-    """A message whose whole content is its header meta (no arrays)."""
+    """A message whose whole content is its header meta (no arrays): a subclass of its META
+    Struct (the JSON fields) with sent_ns added."""
 
+    __slots__ = ()
     KIND: ClassVar[MessageKind]
-    sent_ns: int
+    META: ClassVar[type[msgspec.Struct]]
 
     def to_json(self) -> dict:
-        raise NotImplementedError
+        d = check.to_json(self)
+        del d["sent_ns"]
+        return d
 
     def encode(self) -> bytearray:
         return encode(self.KIND, self.to_json(), None, self.sent_ns or None)
 
     @classmethod
+    def from_meta(cls, meta, sent_ns: int = 0):
+        """The message of a checked META; ProtocolError for what its types cannot say."""
+        return cls(*msgspec.structs.astuple(meta), sent_ns=sent_ns)
+
+    @classmethod
     def from_json(cls, obj: dict, sent_ns: int = 0):
-        raise NotImplementedError
+        return cls.from_meta(check.convert(obj, cls.META, cls.__name__.lower()), sent_ns)
 
     @classmethod
     def from_envelope(cls, env: Envelope):
         if env.arrays:
             raise ProtocolError(f"{cls.__name__.lower()} must not carry arrays")
-        return cls.from_json(env.meta, env.sent_ns)
+        return cls.from_meta(env.meta, env.sent_ns)
 
 
-TIMING_NUMBERS = ("time_s", "receive_s", "setup_s", "render_s")
-TIMING_COUNTS = ("bytes", "particles", "ranks_expected", "ranks_received")
+Rank = Annotated[int, msgspec.Meta(ge=0, lt=MAX_RANKS)]
 
 
-@dataclass
-class Timing(_JsonMessage):
+class TimingMeta(msgspec.Struct, forbid_unknown_fields=True):
+    run: Name
+    step: Count
+    view: Name
+    time_s: NonNegative = 0.0  # simulated time, s
+    receive_s: NonNegative = 0.0
+    setup_s: NonNegative = 0.0
+    render_s: NonNegative = 0.0
+    bytes: Count = 0  # chunk bytes received for the step
+    particles: Count = 0
+    ranks_expected: Count = 0
+    ranks_received: Count = 0
+    incomplete: bool = False
+
+
+class Timing(TimingMeta, _JsonMessage):
     """Per step and view: receive (first chunk to assembled), setup (repartition +
     acceleration structures) and render wall times, s."""
 
     KIND: ClassVar[MessageKind] = MessageKind.TIMING
+    META: ClassVar[type] = TimingMeta
 
-    run: str
-    step: int
-    view: str
-    time_s: float = 0.0  # simulated time, s
-    receive_s: float = 0.0
-    setup_s: float = 0.0
-    render_s: float = 0.0
-    bytes: int = 0  # chunk bytes received for the step
-    particles: int = 0
-    ranks_expected: int = 0
-    ranks_received: int = 0
-    incomplete: bool = False
     sent_ns: int = 0
-
-    def to_json(self) -> dict:
-        return {"run": self.run, "step": self.step, "view": self.view,
-                **{k: getattr(self, k) for k in TIMING_NUMBERS + TIMING_COUNTS},
-                "incomplete": self.incomplete}
-
-    @classmethod
-    def from_json(cls, obj: dict, sent_ns: int = 0) -> Timing:
-        m = check.keys(obj, "timing", {"run", "step", "view", "incomplete",
-                                       *TIMING_NUMBERS, *TIMING_COUNTS})
-        return cls(run=check.name(m["run"], "timing.run"),
-                   step=check.integer(m["step"], "timing.step", 0),
-                   view=check.name(m["view"], "timing.view"),
-                   **{k: check.number(m[k], f"timing.{k}", 0.0) for k in TIMING_NUMBERS},
-                   **{k: check.integer(m[k], f"timing.{k}", 0) for k in TIMING_COUNTS},
-                   incomplete=check.boolean(m["incomplete"], "timing.incomplete"),
-                   sent_ns=sent_ns)
 
 
 class EventKind(StrEnum):
@@ -259,43 +254,28 @@ class EventKind(StrEnum):
     ERROR = "error"
 
 
-@dataclass
-class Event(_JsonMessage):
+class EventMeta(msgspec.Struct, forbid_unknown_fields=True):
+    run: Name
+    kind: EventKind = msgspec.field(name="event")
+    rank: Annotated[int, msgspec.Meta(ge=-1, lt=MAX_RANKS)] = -1  # -1: the server
+    message: Annotated[str, msgspec.Meta(max_length=4096)] = ""
+    detail: dict = {}
+
+
+class Event(EventMeta, _JsonMessage):
     """Lifecycle: run start, rank done, run end, error. rank is -1 for the server."""
 
     KIND: ClassVar[MessageKind] = MessageKind.EVENT
+    META: ClassVar[type] = EventMeta
 
-    run: str
-    kind: EventKind
-    rank: int = -1
-    message: str = ""
-    detail: dict = field(default_factory=dict)
     sent_ns: int = 0
-
-    def to_json(self) -> dict:
-        return {"run": self.run, "event": str(self.kind), "rank": self.rank,
-                "message": self.message, "detail": self.detail}
-
-    @classmethod
-    def from_json(cls, obj: dict, sent_ns: int = 0) -> Event:
-        m = check.keys(obj, "event", {"run", "event", "rank", "message", "detail"})
-        try:
-            kind = EventKind(m["event"])
-        except ValueError:
-            raise ProtocolError(f"event.event: {m['event']!r:.40} is not one of "
-                                f"{[str(k) for k in EventKind]}") from None
-        if not isinstance(m["detail"], dict):
-            raise ProtocolError("event.detail: expected an object")
-        return cls(run=check.name(m["run"], "event.run"), kind=kind,
-                   rank=check.integer(m["rank"], "event.rank", -1, MAX_RANKS),
-                   message=check.text(m["message"], "event.message"), detail=m["detail"],
-                   sent_ns=sent_ns)
 
 
 # Speed histogram of Stats: bin 0 counts speeds below SPEED_EDGES_M_S[0], bin i (1..50) speeds
 # in [edge[i-1], edge[i]), the last bin speeds from edge[-1] up; 10 bins per decade.
 SPEED_EDGES_M_S = tuple(float(10.0 ** (k / 10.0 - 4.0)) for k in range(51))  # 1e-4 .. 10 m/s
 SPEED_BINS = len(SPEED_EDGES_M_S) + 1
+Histogram = Annotated[list[Count], msgspec.Meta(min_length=SPEED_BINS, max_length=SPEED_BINS)]
 
 
 def speed_histogram(speed_m_s: np.ndarray) -> list[int]:
@@ -304,8 +284,21 @@ def speed_histogram(speed_m_s: np.ndarray) -> list[int]:
     return np.bincount(idx, minlength=SPEED_BINS).tolist()
 
 
-@dataclass
-class Stats(_JsonMessage):
+class StatsMeta(msgspec.Struct, forbid_unknown_fields=True):
+    run: Name
+    rank: Rank
+    step: Count
+    time_s: NonNegative  # simulated time, s
+    count: Count  # particles on the rank
+    speed_sq_sum_m2_s2: NonNegative  # sum of |v|^2 over the rank's particles
+    max_speed_m_s: NonNegative
+    max_displacement_m: NonNegative  # max |x - x0|
+    windows_open: bool
+    hist_in_regions: Histogram  # speeds of particles in the open regions
+    hist_elsewhere: Histogram  # the others
+
+
+class Stats(StatsMeta, _JsonMessage):
     """One rank's flow statistics at one step, published on a fixed cadence of simulated time
     whether or not a view is due, so the oracle's predictions can be scored against the full
     run without sending particles. `in_regions` counts particles inside the regions of the
@@ -313,57 +306,29 @@ class Stats(_JsonMessage):
     no window is open: then windows_open is false)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.STATS
+    META: ClassVar[type] = StatsMeta
 
-    run: str
-    rank: int
-    step: int
-    time_s: float  # simulated time, s
-    count: int  # particles on the rank
-    speed_sq_sum_m2_s2: float  # sum of |v|^2 over the rank's particles
-    max_speed_m_s: float
-    max_displacement_m: float  # max |x - x0|
-    windows_open: bool
-    hist_in_regions: list[int]  # [SPEED_BINS] speeds of particles in the open regions
-    hist_elsewhere: list[int]  # [SPEED_BINS] the others
     sent_ns: int = 0
 
-    def to_json(self) -> dict:  # numpy scalars become plain JSON numbers
-        d = {k: getattr(self, k) for k in _STATS_KEYS}
-        for k in ("time_s", "speed_sq_sum_m2_s2", "max_speed_m_s", "max_displacement_m"):
-            d[k] = float(d[k])
+    def __post_init__(self) -> None:  # numpy scalars become plain JSON numbers
         for k in ("rank", "step", "count"):
-            d[k] = int(d[k])
-        d["windows_open"] = bool(d["windows_open"])
-        d["hist_in_regions"] = [int(c) for c in d["hist_in_regions"]]
-        d["hist_elsewhere"] = [int(c) for c in d["hist_elsewhere"]]
-        return d
+            setattr(self, k, int(getattr(self, k)))
+        for k in ("time_s", "speed_sq_sum_m2_s2", "max_speed_m_s", "max_displacement_m"):
+            setattr(self, k, float(getattr(self, k)))
+        self.windows_open = bool(self.windows_open)
+        self.hist_in_regions = [int(c) for c in self.hist_in_regions]
+        self.hist_elsewhere = [int(c) for c in self.hist_elsewhere]
 
     @classmethod
-    def from_json(cls, obj: dict, sent_ns: int = 0) -> Stats:
-        m = check.keys(obj, "stats", set(_STATS_KEYS))
-        hists = {}
-        for k in ("hist_in_regions", "hist_elsewhere"):
-            h = m[k]
-            if not isinstance(h, list) or len(h) != SPEED_BINS:
-                raise ProtocolError(f"stats.{k}: expected a list of {SPEED_BINS} counts")
-            hists[k] = [check.integer(c, f"stats.{k}[{i}]", 0) for i, c in enumerate(h)]
-        if sum(hists["hist_in_regions"]) + sum(hists["hist_elsewhere"]) != m["count"]:
+    def from_meta(cls, meta: StatsMeta, sent_ns: int = 0) -> Stats:
+        if sum(meta.hist_in_regions) + sum(meta.hist_elsewhere) != meta.count:
             raise ProtocolError("stats: histogram counts do not add up to stats.count")
-        return cls(run=check.name(m["run"], "stats.run"),
-                   rank=check.integer(m["rank"], "stats.rank", 0, MAX_RANKS),
-                   step=check.integer(m["step"], "stats.step", 0),
-                   time_s=check.number(m["time_s"], "stats.time_s", 0.0),
-                   count=check.integer(m["count"], "stats.count", 0),
-                   **{k: check.number(m[k], f"stats.{k}", 0.0)
-                      for k in ("speed_sq_sum_m2_s2", "max_speed_m_s", "max_displacement_m")},
-                   windows_open=check.boolean(m["windows_open"], "stats.windows_open"),
-                   **hists, sent_ns=sent_ns)
+        return super().from_meta(meta, sent_ns)
 
 
-_STATS_KEYS = ("run", "rank", "step", "time_s", "count", "speed_sq_sum_m2_s2", "max_speed_m_s",
-               "max_displacement_m", "windows_open", "hist_in_regions", "hist_elsewhere")
-
-META_TYPES = {MessageKind.CHUNK: ChunkMeta, MessageKind.FRAME: FrameMeta}
+META_TYPES = {MessageKind.CHUNK: ChunkMeta, MessageKind.FRAME: FrameMeta,
+              MessageKind.TIMING: TimingMeta, MessageKind.EVENT: EventMeta,
+              MessageKind.STATS: StatsMeta}
 _CLASSES = {MessageKind.CHUNK: Chunk, MessageKind.FRAME: Frame, MessageKind.TIMING: Timing,
             MessageKind.EVENT: Event, MessageKind.SPEC: Spec, MessageKind.STATS: Stats}
 

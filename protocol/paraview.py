@@ -14,7 +14,8 @@ same as `Camera`: lengths in m (the data's units), view angle in degrees (vertic
 Color maps. A ParaView preset is a JSON object with "Name", "ColorSpace" (RGB, HSV, Lab,
 Diverging, Lab/CIEDE2000, Step), "RGBPoints" (x0, r0, g0, b0, x1, ...) and optionally
 "NanColor"; ParaView's "Import" wants a JSON list of such objects. Presets are handled here
-as plain dicts, checked the way render_server.colormap.from_paraview reads them.
+as plain dicts, checked by protocol.view.InlineColormap: the rules of a spec's inline
+colormap and of the renderer's presets.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from xml.parsers import expat
 
 from minority.protocol import check
 from minority.protocol.errors import SpecError
-from minority.protocol.spec import Camera
+from minority.protocol.view import Camera, InlineColormap
 
 PVCC_ROOT = "PVCameraConfiguration"
 PVCC_DESCRIPTION = "ParaView camera configuration"
@@ -50,8 +51,6 @@ _PVCC_CAMERA = {
 _NUMBER_RE = re.compile(r"\s*[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?\s*")
 _INDEX_RE = re.compile(r"\s*[0-9]{1,9}\s*")
 
-COLOR_SPACES = ("RGB", "HSV", "Lab", "Lab/CIEDE2000", "Diverging", "Step")
-DEFAULT_COLOR_SPACE = "RGB"  # what render_server.colormap.from_paraview assumes when absent
 
 
 # ---------------------------------------------------------------------------- cameras
@@ -197,42 +196,10 @@ def _elements(prop: ET.Element, size: int, where: str) -> list[float]:
 # ---------------------------------------------------------------------------- color maps
 
 def validate_colormap_preset(obj, where: str = "preset") -> dict:
-    """A checked, normalized copy of one ParaView preset object: Name, ColorSpace,
-    RGBPoints (floats) and NanColor when given; other keys (Creator, Points, ...) dropped.
-    Errors start with `where` and name the field."""
-    if not isinstance(obj, dict):
-        raise SpecError(f"{where}: expected a preset object, got {type(obj).__name__}")
-    name = obj.get("Name", "Preset")
-    if not isinstance(name, str) or not name:
-        raise SpecError(f"{where}.Name: expected a non-empty string, got {name!r:.40}")
-    if "RGBPoints" not in obj:
-        raise SpecError(f"{where}.RGBPoints: missing (a color preset needs RGBPoints)")
-    pts = obj["RGBPoints"]
-    if not isinstance(pts, list) or len(pts) < 8 or len(pts) % 4:
-        n = len(pts) if isinstance(pts, list) else type(pts).__name__
-        raise SpecError(f"{where}.RGBPoints: expected 4k numbers (x, r, g, b), k >= 2, got {n}")
-    pts = [check.number(v, f"{where}.RGBPoints[{i}]", error=SpecError) for i, v in enumerate(pts)]
-    xs = pts[0::4]
-    for k in range(1, len(xs)):
-        if xs[k] < xs[k - 1]:
-            raise SpecError(f"{where}.RGBPoints[{4 * k}]: x {xs[k]} is below the previous "
-                            f"x {xs[k - 1]} (x values must increase)")
-    if not xs[-1] > xs[0]:
-        raise SpecError(f"{where}.RGBPoints: x range [{xs[0]}, {xs[-1]}] is empty "
-                        f"(x values must increase)")
-    for i, v in enumerate(pts):
-        if i % 4 and not 0.0 <= v <= 1.0:
-            raise SpecError(f"{where}.RGBPoints[{i}]: color component {v} is outside [0, 1]")
-    space = obj.get("ColorSpace", DEFAULT_COLOR_SPACE)
-    if space not in COLOR_SPACES:
-        raise SpecError(f"{where}.ColorSpace: {space!r:.40} is not one of {list(COLOR_SPACES)}")
-    out = {"Name": name, "ColorSpace": space, "RGBPoints": pts}
-    if "NanColor" in obj:
-        nan = check.vector(obj["NanColor"], f"{where}.NanColor", 3, SpecError)
-        if not all(0.0 <= c <= 1.0 for c in nan):
-            raise SpecError(f"{where}.NanColor: components must lie in [0, 1], got {list(nan)}")
-        out["NanColor"] = list(nan)
-    return out
+    """A checked, normalized copy of one ParaView preset object (protocol.view.InlineColormap's
+    rules): Name, RGBPoints (floats), ColorSpace and NanColor; other keys (Creator, Points,
+    ...) dropped. Errors start with `where` and name the field."""
+    return InlineColormap.from_preset(obj, where).to_dict()
 
 
 def read_colormap_preset(path: str | Path, name: str | None = None) -> dict:

@@ -1,8 +1,15 @@
-"""Schemas stored in MCAP files: the wire layout of chunks, JSON Schemas for the rest."""
+"""Schemas stored in MCAP files: the wire layout of chunks, and JSON Schemas for the rest,
+derived from the msgspec types the decoders check with."""
 
 from __future__ import annotations
 
+from typing import Annotated
+
+import msgspec
 from minority.protocol import wire
+from minority.protocol.check import Count, Name, NonNegative
+from minority.protocol.messages import EventMeta, StatsMeta, TimingMeta
+from minority.protocol.spec import SpecDocument
 
 WIRE_ENCODING = "minority-wire-v1"
 WIRE_SCHEMA = (wire.__doc__ or "") + """
@@ -13,71 +20,62 @@ Chunk arrays: positions [n, 3] <f4 (m, required); other fields [n] or [n, k] wit
 e.g. displacement [n, 3] <f4 (m), velocity [n, 3] <f4 (m/s).
 """
 
-_NUM = {"type": "number"}
-_INT = {"type": "integer"}
-_STR = {"type": "string"}
-_VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
+class _Stamp(msgspec.Struct, forbid_unknown_fields=True):
+    sec: Count
+    nsec: Count
 
 
-def _obj(props: dict, required: list[str] | None = None) -> dict:
-    """A closed object: exactly `props` may appear; `required` lists those that must (None:
-    all of them; [] none)."""
-    return {"type": "object", "properties": props,
-            "required": list(props) if required is None else required,
-            "additionalProperties": False}
+Base64 = Annotated[str, msgspec.Meta(extra_json_schema={"contentEncoding": "base64"})]
 
 
-_OPEN_OBJECT = {"type": "object"}  # free-form (provenance, event detail)
+class CompressedImage(msgspec.Struct, forbid_unknown_fields=True):
+    """A Frame as logged: the fields of Foxglove's CompressedImage (so viewers show frames),
+    then the frame's own."""
+
+    timestamp: _Stamp
+    frame_id: str
+    data: Base64
+    format: str
+    run: Name
+    view: Name
+    step: Count
+    time_s: NonNegative
+    width: Count
+    height: Count
 
 
-_CAMERA = _obj({"position": _VEC3, "focal_point": _VEC3, "view_up": _VEC3,
-                "view_angle_deg": _NUM, "parallel_projection": {"type": "boolean"},
-                "parallel_scale_m": _NUM}, ["position", "focal_point"])
-_WINDOW = _obj({"t_start_s": _NUM, "t_end_s": {"type": ["number", "null"]}, "every_steps": _INT,
-                "every_s": _NUM, "regions": {"type": "array", "items": _STR}}, [])
-_COLORMAP = _obj({"Name": _STR, "ColorSpace": _STR, "RGBPoints": {"type": "array", "items": _NUM},
-                  "NanColor": _VEC3}, ["RGBPoints"])
-_VIEW = _obj({"name": _STR, "camera": _CAMERA, "width": _INT, "height": _INT,
-              "background": _VEC3, "field": _STR,
-              "colormap": {"oneOf": [_STR, _COLORMAP]},
-              "range": {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2},
-              "decimate": _INT, "occlusion_cull": {"type": "boolean"},
-              "schedule": {"type": "array", "items": _WINDOW, "minItems": 1},
-              # version 1 shorthand of a one-window schedule
-              **{k: v for k, v in _WINDOW["properties"].items()}},
-             ["name", "camera"])
-_REGION = _obj({"name": _STR, "lo_m": _VEC3, "hi_m": _VEC3})
+class Rejected(msgspec.Struct, forbid_unknown_fields=True):
+    """A payload that failed to decode, kept whole (protocol.log)."""
+
+    key: str
+    reason: str
+    bytes: Count
+    payload_b64: Base64
+
+
+def json_schema(kind: type) -> dict:
+    """The JSON Schema (Draft 2020-12) of a msgspec type, with its definitions inlined (one
+    self-contained object per channel, as MCAP viewers read them)."""
+    schema = msgspec.json.schema(kind)
+    defs = schema.pop("$defs", {})
+
+    def inline(node):
+        if isinstance(node, dict):
+            if "$ref" in node:
+                return inline(defs[node["$ref"].rsplit("/", 1)[-1]])
+            return {k: inline(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [inline(v) for v in node]
+        return node
+
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", **inline(schema)}
+
 
 JSON_SCHEMAS: dict[str, dict] = {
-    # Field names and types of Foxglove's CompressedImage, so viewers show frames.
-    "foxglove.CompressedImage": _obj({
-        "timestamp": _obj({"sec": _INT, "nsec": _INT}),
-        "frame_id": _STR,
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "format": _STR,
-        "run": _STR, "view": _STR, "step": _INT, "time_s": _NUM, "width": _INT, "height": _INT,
-    }, ["timestamp", "frame_id", "data", "format"]),
-    "minority.Spec": _obj({"version": _INT, "run": _STR, "sphere_radius_m": _NUM,
-                           "views": {"type": "array", "items": _VIEW},
-                           "regions": {"type": "array", "items": _REGION},
-                           "events": {"type": "array", "items": _obj(
-                               {"name": _STR, "time_s": _NUM, "tolerance_s": _NUM})},
-                           "budget": _obj({"frames": {"type": ["integer", "null"]},
-                                           "bytes": {"type": ["integer", "null"]}}, []),
-                           "provenance": _OPEN_OBJECT},
-                          ["version", "run", "views"]),
-    "minority.Timing": _obj({"run": _STR, "step": _INT, "view": _STR, "time_s": _NUM,
-                             "receive_s": _NUM, "setup_s": _NUM, "render_s": _NUM,
-                             "bytes": _INT, "particles": _INT, "ranks_expected": _INT,
-                             "ranks_received": _INT, "incomplete": {"type": "boolean"}}),
-    "minority.Event": _obj({"run": _STR, "event": {"enum": ["run_start", "rank_done",
-                                                            "run_end", "error"]},
-                            "rank": _INT, "message": _STR, "detail": _OPEN_OBJECT}),
-    "minority.Stats": _obj({"run": _STR, "rank": _INT, "step": _INT, "time_s": _NUM,
-                            "count": _INT, "speed_sq_sum_m2_s2": _NUM, "max_speed_m_s": _NUM,
-                            "max_displacement_m": _NUM, "windows_open": {"type": "boolean"},
-                            "hist_in_regions": {"type": "array", "items": _INT},
-                            "hist_elsewhere": {"type": "array", "items": _INT}}),
-    "minority.Rejected": _obj({"key": _STR, "reason": _STR, "bytes": _INT,
-                               "payload_b64": {"type": "string", "contentEncoding": "base64"}}),
+    "foxglove.CompressedImage": json_schema(CompressedImage),
+    "minority.Spec": json_schema(SpecDocument),
+    "minority.Timing": json_schema(TimingMeta),
+    "minority.Event": json_schema(EventMeta),
+    "minority.Stats": json_schema(StatsMeta),
+    "minority.Rejected": json_schema(Rejected),
 }

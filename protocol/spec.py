@@ -2,7 +2,10 @@
 
 A versioned JSON model (SPEC_VERSION 2; version 1 files still read). Specs live as JSON
 files, travel as SPEC messages (the JSON as the envelope meta) and validate with errors that
-start with the path of the bad field, e.g. ``views[1].schedule[0].every_s``.
+start with the path of the bad field, e.g. ``views[1].schedule[0].every_s``. The JSON form is
+defined once, by msgspec types (SpecDocument and those it holds): they check what is read and
+give the JSON Schema stored in logs (protocol.schemas); the rest of the checks (names unique,
+regions that exist, ...) are the from_document methods'.
 
 - views (protocol.view): camera, image, field, colormap (ParaView preset name or inline
   RGBPoints) and range, decimation, and a schedule of time windows, each with a cadence
@@ -23,12 +26,14 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
+import msgspec
 import numpy as np
 from minority.protocol import check
+from minority.protocol.check import Name, NonNegative, Positive, Vec3
 from minority.protocol.errors import SpecError
-from minority.protocol.view import Camera, InlineColormap, View, Window
+from minority.protocol.view import Camera, InlineColormap, View, ViewDocument, Window, one_window_shorthand
 from minority.protocol.wire import MAX_HEADER_BYTES, Envelope, MessageKind, encode
 
 SPEC_VERSION = 2
@@ -43,26 +48,26 @@ __all__ = ["Budget", "Camera", "DataRequest", "InlineColormap", "PredictedEvent"
            "Spec", "View", "Window"]
 
 
-@dataclass(frozen=True)
-class Region:
+class Region(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A named axis-aligned box of interest; a particle at x (m) is inside when
     lo_m <= x <= hi_m on every axis."""
 
-    name: str
-    lo_m: tuple[float, float, float]
-    hi_m: tuple[float, float, float]
+    name: Name
+    lo_m: Vec3
+    hi_m: Vec3
 
     @classmethod
     def from_dict(cls, obj, where: str) -> Region:
-        r = check.keys(obj, where, {"name", "lo_m", "hi_m"}, error=SpecError)
-        lo = check.vector(r["lo_m"], f"{where}.lo_m", error=SpecError)
-        hi = check.vector(r["hi_m"], f"{where}.hi_m", error=SpecError)
-        if not all(a <= b for a, b in zip(lo, hi, strict=True)):
-            raise SpecError(f"{where}: lo_m {list(lo)} exceeds hi_m {list(hi)} on some axis")
-        return cls(check.name(r["name"], f"{where}.name", SpecError), lo, hi)
+        return check.convert(obj, cls, where, SpecError).checked(where)
+
+    def checked(self, where: str) -> Region:
+        if not all(a <= b for a, b in zip(self.lo_m, self.hi_m, strict=True)):
+            raise SpecError(f"{where}: lo_m {list(self.lo_m)} exceeds hi_m {list(self.hi_m)} "
+                            "on some axis")
+        return self
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "lo_m": list(self.lo_m), "hi_m": list(self.hi_m)}
+        return check.to_json(self)
 
 
 def inside_mask(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
@@ -80,43 +85,39 @@ def inside_mask(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
     return keep
 
 
-@dataclass(frozen=True)
-class PredictedEvent:
+class PredictedEvent(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Something the oracle expects at `time_s` (s), give or take `tolerance_s`."""
 
-    name: str
-    time_s: float
-    tolerance_s: float = 0.0
-
-    @classmethod
-    def from_dict(cls, obj, where: str) -> PredictedEvent:
-        e = check.keys(obj, where, {"name", "time_s"}, {"tolerance_s"}, error=SpecError)
-        return cls(check.name(e["name"], f"{where}.name", SpecError),
-                   check.number(e["time_s"], f"{where}.time_s", 0.0, None, SpecError),
-                   check.number(e.get("tolerance_s", 0.0), f"{where}.tolerance_s", 0.0, None,
-                                SpecError))
+    name: Name
+    time_s: NonNegative
+    tolerance_s: NonNegative = 0.0
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "time_s": self.time_s, "tolerance_s": self.tolerance_s}
+        return check.to_json(self)
 
 
-@dataclass(frozen=True)
-class Budget:
+class Budget(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """What the schedule was planned within: rendered frames (all views) and chunk bytes
     sent by the simulation; None = no limit."""
 
-    frames: int | None = None
-    bytes: int | None = None
-
-    @classmethod
-    def from_dict(cls, obj, where: str) -> Budget:
-        b = check.keys(obj, where, set(), {"frames", "bytes"}, error=SpecError)
-        return cls(*(None if b.get(k) is None else check.integer(b[k], f"{where}.{k}", 1, None,
-                                                                  SpecError)
-                     for k in ("frames", "bytes")))
+    frames: Positive | None = None
+    bytes: Positive | None = None
 
     def to_dict(self) -> dict:
-        return {"frames": self.frames, "bytes": self.bytes}
+        return check.to_json(self)
+
+
+class SpecDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A Spec as JSON (a file, or a SPEC message's meta)."""
+
+    version: int
+    run: Name
+    views: Annotated[tuple[ViewDocument, ...], msgspec.Meta(min_length=1)]
+    sphere_radius_m: Annotated[float, msgspec.Meta(ge=1e-9, le=check.FLOAT_MAX)] | None = None
+    regions: tuple[Region, ...] = ()
+    events: tuple[PredictedEvent, ...] = ()
+    budget: Budget | None = None
+    provenance: dict = {}
 
 
 @dataclass(frozen=True)
@@ -211,42 +212,41 @@ class Spec:
 
     @classmethod
     def from_dict(cls, obj, sent_ns: int = 0) -> Spec:
-        s = check.keys(obj, "spec", {"version", "run", "views"},
-                       {"sphere_radius_m", "regions", "events", "budget", "provenance"},
-                       error=SpecError)
-        version = check.integer(s["version"], "version", error=SpecError)
-        if version not in READS_VERSIONS:
-            raise SpecError(f"version: spec version {version} is not supported "
-                            f"(this build reads {', '.join(map(str, READS_VERSIONS))})")
-        if not isinstance(s["views"], list) or not s["views"]:
-            raise SpecError("views: expected a non-empty list")
-        views = tuple(View.from_dict(v, f"views[{i}]") for i, v in enumerate(s["views"]))
+        """The Spec of a decoded JSON object; SpecError "{path}: {problem}" otherwise."""
+        if isinstance(obj, dict) and "version" in obj:
+            version = check.convert(obj["version"], int, "version", SpecError)
+            if version not in READS_VERSIONS:
+                raise SpecError(f"version: spec version {version} is not supported "
+                                f"(this build reads {', '.join(map(str, READS_VERSIONS))})")
+        flat: list[int] = []
+        if isinstance(obj, dict) and isinstance(obj.get("views"), list):
+            obj = {**obj, "views": [dict(v) if isinstance(v, dict) else v for v in obj["views"]]}
+            flat = one_window_shorthand(obj["views"])
+        try:
+            return cls.from_document(check.convert(obj, SpecDocument, "", SpecError, "spec"), sent_ns)
+        except SpecError as exc:
+            text = str(exc)
+            for i in flat:  # name the view, where its one window's keys are
+                text = text.replace(f"views[{i}].schedule[0]", f"views[{i}]", 1)
+            raise SpecError(text) from None
+
+    @classmethod
+    def from_document(cls, s: SpecDocument, sent_ns: int = 0) -> Spec:
+        views = tuple(View.from_document(v, f"views[{i}]") for i, v in enumerate(s.views))
         _unique([v.name for v in views], "views: view names")
-        radius = s.get("sphere_radius_m")
-        if radius is not None:
-            radius = check.number(radius, "sphere_radius_m", 1e-9, None, SpecError)
-        regions = tuple(Region.from_dict(r, f"regions[{i}]")
-                        for i, r in enumerate(_list(s, "regions", "{name, lo_m, hi_m}")))
+        regions = tuple(r.checked(f"regions[{i}]") for i, r in enumerate(s.regions))
         region_names = [r.name for r in regions]
         _unique(region_names, "regions: region names")
         for i, v in enumerate(views):
             for k, w in enumerate(v.schedule):
                 for j, name in enumerate(w.regions):
                     if name not in region_names:
-                        where = (f"views[{i}].schedule[{k}]" if "schedule" in s["views"][i]
-                                 else f"views[{i}]")
-                        raise SpecError(f"{where}.regions[{j}]: no region named {name!r} "
-                                        f"(regions: {region_names})")
-        events = tuple(PredictedEvent.from_dict(e, f"events[{i}]")
-                       for i, e in enumerate(_list(s, "events", "{name, time_s, tolerance_s}")))
-        _unique([e.name for e in events], "events: event names")
-        budget = Budget.from_dict(s["budget"], "budget") if s.get("budget") else Budget()
-        provenance = s.get("provenance", {})
-        if not isinstance(provenance, dict):
-            raise SpecError("provenance: expected an object")
-        return cls(run=check.name(s["run"], "run", SpecError), views=views, version=SPEC_VERSION,
-                   sphere_radius_m=radius, regions=regions, events=events, budget=budget,
-                   provenance=provenance, sent_ns=sent_ns)
+                        raise SpecError(f"views[{i}].schedule[{k}].regions[{j}]: no region named "
+                                        f"{name!r} (regions: {region_names})")
+        _unique([e.name for e in s.events], "events: event names")
+        return cls(run=s.run, views=views, version=SPEC_VERSION,
+                   sphere_radius_m=s.sphere_radius_m, regions=regions, events=s.events,
+                   budget=s.budget or Budget(), provenance=s.provenance, sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:
@@ -276,6 +276,12 @@ class Spec:
             raise SpecError(f"{path}: larger than {MAX_SPEC_FILE_BYTES} bytes "
                             "(MAX_SPEC_FILE_BYTES), not a spec")
         return cls.from_dict(loads_json(data, str(path)))
+
+
+def render_radius_m(spec: Spec | None, spacing_m: float) -> float:
+    """The sphere radius particles `spacing_m` apart (m) render with: the spec's
+    sphere_radius_m, or half the spacing when it gives none (or there is no spec)."""
+    return (spec.sphere_radius_m if spec is not None else None) or 0.5 * spacing_m
 
 
 class _Refused(ValueError):
@@ -321,13 +327,6 @@ def loads_json(data: bytes | str, where: str):
     except RecursionError:  # the C scanner counts its depth: no stack is exhausted
         raise SpecError(f"{where}: JSON nested too deeply for the parser (about "
                         f"{sys.getrecursionlimit()} levels; a spec needs fewer than 10)") from None
-
-
-def _list(s: dict, key: str, shape: str) -> list:
-    value = s.get(key, [])
-    if not isinstance(value, list):
-        raise SpecError(f"{key}: expected a list of {shape}")
-    return value
 
 
 def _unique(names: list[str], what: str) -> None:

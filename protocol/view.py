@@ -2,59 +2,80 @@
 
 A view's schedule is a list of windows of simulated time, each with its own cadence
 (every n-th sim step, or every `every_s` seconds of simulated time) and its own regions of
-interest. Errors start with the path of the bad field, e.g. ``views[1].schedule[0].every_s``.
+interest. The JSON form is defined once, by the msgspec types here (Camera, InlineColormap,
+WindowDocument, ViewDocument): they check what is read and give the JSON Schema stored in logs.
+Errors start with the path of the bad field, e.g. ``views[1].schedule[0].every_s``.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
+import msgspec
 import numpy as np
 from minority.protocol import check
+from minority.protocol.check import RGB, Finite, Name, NonNegative, Vec3
 from minority.protocol.errors import SpecError
 
 MAX_IMAGE_SIDE = 8192  # px; 3840x2160 is the largest size the server is tested with
 DEFAULT_EVERY_STEPS = 20
 COLOR_SPACES = ("RGB", "HSV", "Lab", "Lab/CIEDE2000", "Diverging", "Step")
+DEFAULT_COLOR_SPACE = "RGB"  # ParaView's, when a preset names none
+# The ParaView presets the renderer has built in (render_server.colormap); any matplotlib
+# colormap name ("viridis", "coolwarm", ...) is accepted too.
+PARAVIEW_PRESETS = ("Cool to Warm", "Grayscale", "Viridis (matplotlib)", "Plasma (matplotlib)",
+                    "Inferno (matplotlib)", "Magma (matplotlib)", "Turbo")
+DEFAULT_COLORMAP = "Viridis (matplotlib)"
+
+Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_IMAGE_SIDE)]
+Stride = Annotated[int, msgspec.Meta(ge=1)]
+ColormapName = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
 
 
-@dataclass(frozen=True)
-class Camera:
+def matplotlib_colormaps() -> frozenset[str]:
+    from matplotlib import colormaps  # only when a name is not a ParaView preset
+
+    return frozenset(colormaps)
+
+
+def check_colormap_name(name: str, where: str) -> str:
+    """`name` when it is one of PARAVIEW_PRESETS or a matplotlib colormap; SpecError otherwise."""
+    if name in PARAVIEW_PRESETS or name in matplotlib_colormaps():
+        return name
+    raise SpecError(f"{where}: {name!r:.60} is neither a built-in ParaView preset "
+                    f"({', '.join(PARAVIEW_PRESETS)}) nor a matplotlib colormap name "
+                    "(e.g. viridis, coolwarm); or give the preset inline {Name, RGBPoints, ...}")
+
+
+class Camera(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """VTK camera model: positions in m, view angle in degrees (vertical), or parallel
     projection with parallel_scale = half the view height in m."""
 
-    position: tuple[float, float, float]
-    focal_point: tuple[float, float, float]
-    view_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    view_angle_deg: float = 30.0
+    position: Vec3
+    focal_point: Vec3
+    view_up: Vec3 = (0.0, 0.0, 1.0)
+    view_angle_deg: Annotated[float, msgspec.Meta(ge=0.1, le=179.0)] = 30.0
     parallel_projection: bool = False
-    parallel_scale_m: float = 1.0
+    parallel_scale_m: Annotated[float, msgspec.Meta(ge=1e-9, le=check.FLOAT_MAX)] = 1.0
 
     @classmethod
     def from_dict(cls, obj, where: str) -> Camera:
-        c = check.keys(obj, where, {"position", "focal_point"},
-                       {"view_up", "view_angle_deg", "parallel_projection", "parallel_scale_m"},
-                       error=SpecError)
-        cam = cls(position=check.vector(c["position"], f"{where}.position", error=SpecError),
-                  focal_point=check.vector(c["focal_point"], f"{where}.focal_point", error=SpecError),
-                  view_up=check.vector(c.get("view_up", cls.view_up), f"{where}.view_up",
-                                       error=SpecError),
-                  view_angle_deg=check.number(c.get("view_angle_deg", cls.view_angle_deg),
-                                              f"{where}.view_angle_deg", 0.1, 179.0, SpecError),
-                  parallel_projection=check.boolean(c.get("parallel_projection", False),
-                                                    f"{where}.parallel_projection", SpecError),
-                  parallel_scale_m=check.number(c.get("parallel_scale_m", cls.parallel_scale_m),
-                                                f"{where}.parallel_scale_m", 1e-9, None, SpecError))
-        direction = [f - p for f, p in zip(cam.focal_point, cam.position, strict=True)]
+        return check.convert(obj, cls, where, SpecError).checked(where)
+
+    def checked(self, where: str) -> Camera:
+        """self, when its frame is defined: SpecError naming `where` otherwise."""
+        direction = [f - p for f, p in zip(self.focal_point, self.position, strict=True)]
         if math.hypot(*direction) == 0.0:
             raise SpecError(f"{where}: position and focal_point coincide")
-        cross = (direction[1] * cam.view_up[2] - direction[2] * cam.view_up[1],
-                 direction[2] * cam.view_up[0] - direction[0] * cam.view_up[2],
-                 direction[0] * cam.view_up[1] - direction[1] * cam.view_up[0])
-        if math.hypot(*cross) <= 1e-12 * math.hypot(*direction) * max(math.hypot(*cam.view_up), 1e-300):
+        up = self.view_up
+        cross = (direction[1] * up[2] - direction[2] * up[1],
+                 direction[2] * up[0] - direction[0] * up[2],
+                 direction[0] * up[1] - direction[1] * up[0])
+        if math.hypot(*cross) <= 1e-12 * math.hypot(*direction) * max(math.hypot(*up), 1e-300):
             raise SpecError(f"{where}.view_up: parallel to the view direction (or zero)")
-        return cam
+        return self
 
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """The camera's orthonormal frame in world coordinates, VTK's convention: position
@@ -69,47 +90,55 @@ class Camera:
         return position, right, np.cross(right, forward), forward, distance
 
     def to_dict(self) -> dict:
-        return {"position": list(self.position), "focal_point": list(self.focal_point),
-                "view_up": list(self.view_up), "view_angle_deg": self.view_angle_deg,
-                "parallel_projection": self.parallel_projection,
-                "parallel_scale_m": self.parallel_scale_m}
+        return check.to_json(self)
 
 
-@dataclass(frozen=True)
-class InlineColormap:
-    """A ParaView preset written into the spec: RGBPoints x0, r0, g0, b0, x1, ... (x in any
-    units: the view's range rescales it; r, g, b in [0, 1])."""
+class InlineColormap(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A ParaView preset (the object ParaView's preset JSON holds): RGBPoints x0, r0, g0, b0,
+    x1, ... (x in any units: the view's range rescales it; r, g, b in [0, 1])."""
 
-    name: str
-    color_space: str
-    rgb_points: tuple[float, ...]
-    nan_color: tuple[float, float, float] = (1.0, 1.0, 0.0)
+    name: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] = msgspec.field(name="Name")
+    rgb_points: Annotated[tuple[Finite, ...], msgspec.Meta(min_length=8)] = msgspec.field(
+        name="RGBPoints")
+    color_space: Literal[COLOR_SPACES] = msgspec.field(default=DEFAULT_COLOR_SPACE,
+                                                       name="ColorSpace")
+    nan_color: RGB = msgspec.field(default=(1.0, 1.0, 0.0), name="NanColor")
 
     @classmethod
     def from_dict(cls, obj, where: str) -> InlineColormap:
-        c = check.keys(obj, where, {"Name", "RGBPoints"}, {"ColorSpace", "NanColor"},
-                       error=SpecError)
-        space = c.get("ColorSpace", "RGB")
-        if space not in COLOR_SPACES:
-            raise SpecError(f"{where}.ColorSpace: {space!r:.40} is not one of {list(COLOR_SPACES)}")
-        pts = c["RGBPoints"]
-        if not isinstance(pts, list) or len(pts) < 8 or len(pts) % 4:
-            raise SpecError(f"{where}.RGBPoints: expected x, r, g, b quadruples (at least two)")
-        values = tuple(check.number(v, f"{where}.RGBPoints[{i}]", error=SpecError)
-                       for i, v in enumerate(pts))
-        xs = values[0::4]
-        if any(b < a for a, b in zip(xs[:-1], xs[1:], strict=True)) or xs[-1] <= xs[0]:
-            raise SpecError(f"{where}.RGBPoints: x values must increase")
-        if any(not 0.0 <= v <= 1.0 for i, v in enumerate(values) if i % 4):
-            raise SpecError(f"{where}.RGBPoints: r, g, b must lie in [0, 1]")
-        nan = check.vector(c.get("NanColor", list(cls.nan_color)), f"{where}.NanColor",
-                           error=SpecError)
-        return cls(check.text(c["Name"], f"{where}.Name", 128, SpecError), space, values, nan)
+        """A spec's inline colormap: exactly these keys, Name and RGBPoints required."""
+        return check.convert(obj, cls, where, SpecError).checked(where)
+
+    @classmethod
+    def from_preset(cls, obj, where: str, name: str = "Preset") -> InlineColormap:
+        """One object of a ParaView preset file: keys other than these (Creator, Points, ...)
+        are dropped, Name defaults to `name`."""
+        if not isinstance(obj, dict):
+            raise SpecError(f"{where}: expected a preset object, got {type(obj).__name__}")
+        kept = {k: obj[k] for k in ("Name", "RGBPoints", "ColorSpace", "NanColor") if k in obj}
+        return cls.from_dict({"Name": name, **kept}, where)
+
+    def checked(self, where: str) -> InlineColormap:
+        pts = self.rgb_points
+        if len(pts) % 4:
+            raise SpecError(f"{where}.RGBPoints: expected x, r, g, b quadruples (4k numbers, "
+                            f"k >= 2), got {len(pts)}")
+        xs = pts[0::4]
+        for k in range(1, len(xs)):
+            if xs[k] < xs[k - 1]:
+                raise SpecError(f"{where}.RGBPoints[{4 * k}]: x {xs[k]} is below the previous "
+                                f"x {xs[k - 1]} (x values must increase)")
+        if not xs[-1] > xs[0]:
+            raise SpecError(f"{where}.RGBPoints: x range [{xs[0]}, {xs[-1]}] is empty "
+                            "(x values must increase)")
+        for i, v in enumerate(pts):
+            if i % 4 and not 0.0 <= v <= 1.0:
+                raise SpecError(f"{where}.RGBPoints[{i}]: color component {v} is outside [0, 1]")
+        return self
 
     def to_dict(self) -> dict:
-        """The ParaView preset object (what ParaView's preset JSON holds)."""
-        return {"Name": self.name, "ColorSpace": self.color_space,
-                "RGBPoints": list(self.rgb_points), "NanColor": list(self.nan_color)}
+        """The ParaView preset object."""
+        return check.to_json(self)
 
 
 # every_s instants: a time within this fraction of every_s before an instant has reached it
@@ -131,24 +160,14 @@ class Window:
     regions: tuple[str, ...] = ()  # names of the spec's regions; () = every particle
 
     @classmethod
-    def from_dict(cls, obj, where: str) -> Window:
-        w = check.keys(obj, where, set(), {"t_start_s", "t_end_s", "every_steps", "every_s",
-                                           "regions"}, error=SpecError)
-        t0 = check.number(w.get("t_start_s", 0.0), f"{where}.t_start_s", 0.0, None, SpecError)
-        t1 = w.get("t_end_s")
-        t1 = math.inf if t1 is None else check.number(t1, f"{where}.t_end_s", t0, None, SpecError)
-        every_s = w.get("every_s")
-        if every_s is not None:
-            every_s = check.number(every_s, f"{where}.every_s", 1e-12, None, SpecError)
-            if "every_steps" in w:
-                raise SpecError(f"{where}: give every_steps or every_s, not both")
-        regions = w.get("regions", [])
-        if not isinstance(regions, list):
-            raise SpecError(f"{where}.regions: expected a list of region names")
-        return cls(t0, t1, check.integer(w.get("every_steps", DEFAULT_EVERY_STEPS),
-                                         f"{where}.every_steps", 1, None, SpecError),
-                   every_s, tuple(check.name(r, f"{where}.regions[{i}]", SpecError)
-                                  for i, r in enumerate(regions)))
+    def from_document(cls, w: WindowDocument, where: str) -> Window:
+        if w.t_end_s is not None and w.t_end_s < w.t_start_s:
+            raise SpecError(f"{where}.t_end_s: {w.t_end_s} is before t_start_s {w.t_start_s}")
+        if w.every_s is not None and w.every_steps is not msgspec.UNSET:
+            raise SpecError(f"{where}: give every_steps or every_s, not both")
+        return cls(w.t_start_s, math.inf if w.t_end_s is None else w.t_end_s,
+                   DEFAULT_EVERY_STEPS if w.every_steps is msgspec.UNSET else w.every_steps,
+                   w.every_s, w.regions)
 
     def contains(self, time_s: float) -> bool:
         return self.t_start_s <= time_s <= self.t_end_s
@@ -196,7 +215,51 @@ class Window:
         return d
 
 
-_FLAT = ("t_start_s", "t_end_s", "every_steps", "every_s", "regions")  # version 1 shorthand
+class WindowDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A Window as JSON: t_end_s null = open-ended; every_steps or every_s, not both."""
+
+    t_start_s: NonNegative = 0.0
+    t_end_s: NonNegative | None = None
+    every_steps: Stride | msgspec.UnsetType = msgspec.UNSET
+    every_s: Annotated[float, msgspec.Meta(ge=1e-12, le=check.FLOAT_MAX)] | None = None
+    regions: tuple[Name, ...] = ()
+
+
+class ViewDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A View as JSON (defaults as View's)."""
+
+    name: Name
+    camera: Camera
+    width: Side = 1024
+    height: Side = 768
+    background: RGB = (1.0, 1.0, 1.0)
+    field: Name = "displacement"
+    colormap: ColormapName | InlineColormap = DEFAULT_COLORMAP
+    range: tuple[Finite, Finite] = (0.0, 1.0)
+    decimate: Stride = 1
+    occlusion_cull: bool = False
+    schedule: Annotated[tuple[WindowDocument, ...], msgspec.Meta(min_length=1)] = (
+        WindowDocument(),)
+
+
+ONE_WINDOW_KEYS = ("t_start_s", "t_end_s", "every_steps", "every_s", "regions")
+
+
+def one_window_shorthand(views, where: str = "views") -> list[int]:
+    """Rewrite, in place, each view object of the JSON list `views` that gives its one window's
+    keys (ONE_WINDOW_KEYS) on the view itself (version 1's form) as a schedule of that window;
+    the indices of the views rewritten."""
+    rewritten = []
+    for i, v in enumerate(views if isinstance(views, list) else []):
+        flat = [k for k in ONE_WINDOW_KEYS if isinstance(v, dict) and k in v]
+        if not flat:
+            continue
+        if "schedule" in v:
+            raise SpecError(f"{where}[{i}]: give a schedule or the single-window keys "
+                            f"({', '.join(flat)}), not both")
+        v["schedule"] = [{k: v.pop(k) for k in flat}]
+        rewritten.append(i)
+    return rewritten
 
 
 @dataclass(frozen=True)
@@ -209,7 +272,7 @@ class View:
     height: int = 768  # px
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # RGB in [0, 1]
     field: str = "displacement"  # colored by magnitude if vector-valued
-    colormap: str | InlineColormap = "Viridis (matplotlib)"  # ParaView preset name or inline
+    colormap: str | InlineColormap = DEFAULT_COLORMAP  # ParaView or matplotlib name, or inline
     range: tuple[float, float] = (0.0, 1.0)  # colormap range, units of the field
     decimate: int = 1  # render every n-th particle (by particle id); 1 = all
     schedule: tuple[Window, ...] = (Window(),)
@@ -219,44 +282,23 @@ class View:
 
     @classmethod
     def from_dict(cls, obj, where: str) -> View:
-        v = check.keys(obj, where, {"name", "camera"},
-                       {"width", "height", "background", "field", "colormap", "range", "decimate",
-                        "occlusion_cull", "schedule", *_FLAT}, error=SpecError)
-        rng = check.vector(v.get("range", cls.range), f"{where}.range", 2, SpecError)
-        if not rng[0] < rng[1]:
-            raise SpecError(f"{where}.range: lower bound {rng[0]} must be below upper {rng[1]}")
-        background = check.vector(v.get("background", cls.background), f"{where}.background",
-                                  3, SpecError)
-        if not all(0.0 <= b <= 1.0 for b in background):
-            raise SpecError(f"{where}.background: RGB components must lie in [0, 1]")
-        cmap = v.get("colormap", cls.colormap)
-        cmap = (InlineColormap.from_dict(cmap, f"{where}.colormap") if isinstance(cmap, dict)
-                else check.text(cmap, f"{where}.colormap", 128, SpecError))
-        flat = [k for k in _FLAT if k in v]
-        if "schedule" in v:
-            if flat:
-                raise SpecError(f"{where}: give a schedule or the single-window keys "
-                                f"({', '.join(flat)}), not both")
-            if not isinstance(v["schedule"], list) or not v["schedule"]:
-                raise SpecError(f"{where}.schedule: expected a non-empty list of windows")
-            schedule = tuple(Window.from_dict(w, f"{where}.schedule[{i}]")
-                             for i, w in enumerate(v["schedule"]))
-        else:
-            schedule = (Window.from_dict({k: v[k] for k in flat}, where),)
-        return cls(name=check.name(v["name"], f"{where}.name", SpecError),
-                   camera=Camera.from_dict(v["camera"], f"{where}.camera"),
-                   width=check.integer(v.get("width", cls.width), f"{where}.width", 1,
-                                       MAX_IMAGE_SIDE, SpecError),
-                   height=check.integer(v.get("height", cls.height), f"{where}.height", 1,
-                                        MAX_IMAGE_SIDE, SpecError),
-                   background=background,
-                   field=check.name(v.get("field", cls.field), f"{where}.field", SpecError),
-                   colormap=cmap, range=rng,
-                   decimate=check.integer(v.get("decimate", 1), f"{where}.decimate", 1, None,
-                                          SpecError),
-                   schedule=schedule,
-                   occlusion_cull=check.boolean(v.get("occlusion_cull", False),
-                                                f"{where}.occlusion_cull", SpecError))
+        if isinstance(obj, dict):
+            obj = dict(obj)
+            one_window_shorthand([obj], where)
+        return cls.from_document(check.convert(obj, ViewDocument, where, SpecError), where)
+
+    @classmethod
+    def from_document(cls, v: ViewDocument, where: str) -> View:
+        """The View of a checked document; SpecError for what its types cannot say."""
+        if not v.range[0] < v.range[1]:
+            raise SpecError(f"{where}.range: lower bound {v.range[0]} must be below upper "
+                            f"{v.range[1]}")
+        cmap = (check_colormap_name(v.colormap, f"{where}.colormap") if isinstance(v.colormap, str)
+                else v.colormap.checked(f"{where}.colormap"))
+        return cls(v.name, v.camera.checked(f"{where}.camera"), v.width, v.height, v.background,
+                   v.field, cmap, v.range, v.decimate,
+                   tuple(Window.from_document(w, f"{where}.schedule[{i}]")
+                         for i, w in enumerate(v.schedule)), v.occlusion_cull)
 
     @property
     def t_start_s(self) -> float:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from minority.protocol.errors import SpecError
-from minority.protocol.view import InlineColormap
+from minority.protocol.view import InlineColormap, check_colormap_name
 from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
 
 LUT_SIZE = 1024
@@ -56,22 +56,13 @@ class Colormap:
 
 
 def from_paraview(obj: dict, where: str = "preset") -> Colormap:
-    """A Colormap from one ParaView preset object (as in ParaView's exported JSON)."""
-    if not isinstance(obj, dict) or "RGBPoints" not in obj:
-        raise SpecError(f"{where}: a ParaView color preset needs RGBPoints")
-    pts = obj["RGBPoints"]
-    if (not isinstance(pts, list) or len(pts) < 8 or len(pts) % 4
-            or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in pts)):
-        raise SpecError(f"{where}.RGBPoints: expected 4k finite numbers (x, r, g, b), k >= 2")
-    xs = pts[0::4]
-    if any(b < a for a, b in zip(xs, xs[1:], strict=False)) or xs[-1] <= xs[0]:
-        raise SpecError(f"{where}.RGBPoints: x values must increase")
-    space = obj.get("ColorSpace", "RGB")
-    if space not in _SPACES:
-        raise SpecError(f"{where}.ColorSpace: {space!r} is not one of {sorted(_SPACES)}")
-    nan = obj.get("NanColor", [1.0, 1.0, 0.0])
-    return Colormap(str(obj.get("Name", "custom")), space, tuple(float(v) for v in pts),
-                    tuple(float(v) for v in nan[:3]))
+    """A Colormap from one ParaView preset object (as in ParaView's exported JSON), checked
+    by protocol.view.InlineColormap."""
+    return _from_inline(InlineColormap.from_preset(obj, where))
+
+
+def _from_inline(c: InlineColormap) -> Colormap:
+    return Colormap(c.name, c.color_space, c.rgb_points, c.nan_color)
 
 
 def to_paraview(cmap: Colormap, vmin: float | None = None, vmax: float | None = None) -> dict:
@@ -120,20 +111,22 @@ def builtin_presets() -> dict[str, Colormap]:
     return {m.name: m for m in maps}
 
 
+@lru_cache(maxsize=64)
 def preset(name: str) -> Colormap:
-    """A built-in preset by its ParaView name."""
+    """A built-in ParaView preset by its name, or a matplotlib colormap by its name (both
+    checked by protocol.view.check_colormap_name)."""
     presets = builtin_presets()
-    if name not in presets:
-        raise SpecError(f"colormap {name!r} is not a built-in preset; known: {sorted(presets)}")
-    return presets[name]
+    if name in presets:
+        return presets[name]
+    return _matplotlib(check_colormap_name(name, "colormap"), name)
 
 
 def view_colormap(colormap: str | InlineColormap) -> Colormap:
-    """The Colormap of a view: a built-in preset by ParaView name, or the view's inline
-    ParaView preset (built once per distinct preset, so its lookup table is sampled once)."""
+    """The Colormap of a view: a preset by name, or the view's inline ParaView preset (built
+    once per distinct preset, so its lookup table is sampled once)."""
     return preset(colormap) if isinstance(colormap, str) else _inline(colormap)
 
 
 @lru_cache(maxsize=256)
 def _inline(colormap: InlineColormap) -> Colormap:
-    return from_paraview(colormap.to_dict(), f"colormap {colormap.name!r}")
+    return _from_inline(colormap.checked(f"colormap {colormap.name!r}"))

@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 from minority.protocol.errors import SpecError
-from minority.protocol.spec import ID_FIELD, Region, Spec, View, inside_mask
+from minority.protocol.spec import ID_FIELD, Region, Spec, View, inside_mask, render_radius_m
 from minority.render_server.colormap import view_colormap
 from minority.render_server.render import Canvas, Scene, encode_png, prepare, render
 
@@ -105,7 +105,7 @@ def render_views(step: StepLike, spec: Spec, canvases: dict[str, Canvas],
         views = spec.wants(step.step, step.time_s, step.prev_time_s)
     if not views:
         return []
-    radius = spec.sphere_radius_m or 0.5 * step.spacing_m
+    radius = render_radius_m(spec, step.spacing_m)
     subsets: dict[SubsetKey, _Subset] = {}
     out = []
     for view in views:

@@ -89,7 +89,7 @@ from minority.protocol.messages import (
     decode_as,
 )
 from minority.protocol.session import NetworkOptions, QoS, Role, open_session, put
-from minority.protocol.spec import DataRequest, Spec
+from minority.protocol.spec import DataRequest, Spec, render_radius_m
 from minority.protocol.view import Window
 from minority.sim.outbox import (
     CHUNK,
@@ -374,10 +374,7 @@ class RankPublisher:
                 self.stats.missing_fields.append(name)
                 print(f"rank {self.rank}: the spec asks for field {name!r}, which the simulation "
                       f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
-        spec = self.spec
-        radius = (spec.sphere_radius_m if spec is not None and spec.sphere_radius_m
-                  else 0.5 * self.spacing_m)  # as the server renders them
-        fields = cull(ps, request, radius)
+        fields = cull(ps, request, render_radius_m(self.spec, self.spacing_m))
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
                       self.bounds_m, fields, prev_time_s=prev)
         item = OutboxItem(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)

@@ -41,7 +41,10 @@ NAMES = ["chunk", "spec", "frame", "timing", "event", "stats"]
 def test_regenerate_golden():
     for message in sample_messages():
         name = type(message).__name__.lower()
-        payload = bytes(dataclasses.replace(message, sent_ns=SENT_NS).encode())
+        replace = (msgspec.structs.replace if isinstance(message, msgspec.Struct)
+                   else dataclasses.replace)
+        message = replace(message, sent_ns=SENT_NS)
+        payload = bytes(message.encode())
         (GOLDEN / f"{name}.bin").write_bytes(payload)
         (GOLDEN / f"{name}.json").write_text(
             json.dumps(normalized(summary(decode_message(payload))), indent=1) + "\n")

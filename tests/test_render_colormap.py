@@ -41,8 +41,8 @@ def test_paraview_json_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("obj,message", [
-    ({"Name": "x"}, "needs RGBPoints"),
-    ({"RGBPoints": [0, 0, 0, 0, 1, 1, 1]}, "4k finite numbers"),
+    ({"Name": "x"}, "preset: missing RGBPoints"),
+    ({"RGBPoints": [0, 0, 0, 0, 1, 1, 1]}, r"preset.RGBPoints: expected array of length >= 8"),
     ({"RGBPoints": [1, 0, 0, 0, 0, 1, 1, 1]}, "x values must increase"),
     ({"RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1], "ColorSpace": "CMYK"}, "ColorSpace"),
 ])

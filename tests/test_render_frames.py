@@ -2,9 +2,12 @@
 particles of its window's regions, decimated by id; one acceleration structure per distinct
 subset; inline colormaps; every_s cadences decided with the previous step's time."""
 
+import dataclasses
+
 import minority.render_server.frames as frames
 import numpy as np
 import pytest
+from minority.protocol.errors import SpecError
 from minority.protocol.spec import InlineColormap, Spec, inside_mask
 from minority.render_server.assemble import AssembledStep
 from minority.render_server.colormap import preset, view_colormap
@@ -84,8 +87,8 @@ def test_decimation_by_id_and_without_ids():
 
 def test_inline_colormap_renders_like_the_named_preset():
     viridis = preset("Viridis (matplotlib)")
-    inline = InlineColormap("my viridis", viridis.color_space, viridis.rgb_points,
-                            viridis.nan_color)
+    inline = InlineColormap(name="my viridis", color_space=viridis.color_space,
+                            rgb_points=viridis.rgb_points, nan_color=viridis.nan_color)
     spec = make_spec(view("named", field="vector"),
                      view("inline", field="vector", colormap=inline.to_dict()))
     assert spec.views[1].colormap == inline
@@ -108,14 +111,18 @@ def test_every_s_cadence_uses_the_previous_step_time(time_s, prev_time_s, due):
 
 
 def test_empty_region_shows_the_background_and_what_cannot_render_is_named():
+    with pytest.raises(SpecError, match=r"views\[0\].colormap: 'No Such Preset' is neither"):
+        make_spec(view("unknown", colormap="No Such Preset"))
     spec = make_spec(view("nothing", schedule=[{"regions": ["empty"]}], background=[0, 0, 1]),
-                     view("pressure", field="pressure"), view("all"),
-                     view("unknown", colormap="No Such Preset"))
+                     view("pressure", field="pressure"), view("all"), view("unknown"))
+    # a view made in code is not checked: the renderer names what it cannot draw
+    unknown = dataclasses.replace(spec.views[-1], colormap="No Such Preset")
+    spec = dataclasses.replace(spec, views=(*spec.views[:-1], unknown))
     got = by_name(frames.render_views(make_step(), spec, {}))
     assert got["nothing"].particles == 0 and (got["nothing"].image == [0, 0, 255]).all()
     assert got["pressure"].image is None and "needs field 'pressure'" in got["pressure"].error
     assert got["all"].image is not None and not got["all"].error
-    assert "'No Such Preset' is not a built-in preset" in got["unknown"].error
+    assert "'No Such Preset' is neither a built-in ParaView preset" in got["unknown"].error
     # a step whose chunks hold no particles: each due view that can render is its background
     empty = by_name(frames.render_views(make_step(n=0), spec, {}))
     assert empty["all"].particles == 0 and (empty["all"].image == 255).all()

@@ -65,3 +65,19 @@ def test_a_schema_refuses_what_the_decoder_refuses(tmp_path):
     d = make_spec().to_dict()
     d["views"][0]["colour"] = "red"
     assert not jsonschema.Draft202012Validator(json.loads(schema.data)).is_valid(d)
+
+
+def test_the_schemas_are_self_contained_and_portable():
+    """Viewers read one schema per channel: no $ref to resolve; name patterns use only what
+    JavaScript's regular expressions also have (no \\Z), and still refuse a trailing newline."""
+    import re
+
+    from minority.protocol.schemas import JSON_SCHEMAS
+
+    for name, schema in JSON_SCHEMAS.items():
+        text = json.dumps(schema)
+        assert "$ref" not in text and "\\\\Z" not in text, name
+    pattern = JSON_SCHEMAS["minority.Timing"]["properties"]["run"]["pattern"]
+    assert re.search(pattern, "run-1") and not re.search(pattern, "run-1\n")
+    timing = {"run": "r", "step": 1, "view": "v\n"}
+    assert not jsonschema.Draft202012Validator(JSON_SCHEMAS["minority.Timing"]).is_valid(timing)

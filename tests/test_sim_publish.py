@@ -13,6 +13,7 @@ import threading
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -465,7 +466,7 @@ def test_flow_stats_match_a_hand_computation():
         assert st.max_displacement_m == pytest.approx(
             np.linalg.norm(ps.x - ps.x0, axis=1).max(), rel=1e-12)
         again = decode_as(st.encode(), Stats)  # decoding checks that the histograms add up
-        assert again == dataclasses.replace(st, sent_ns=again.sent_ns)
+        assert again == msgspec.structs.replace(st, sent_ns=again.sent_ns)
     empty = dataclasses.replace(ps, **{name: getattr(ps, name)[:0] for name in PARTICLE_FIELDS})
     st = flow_stats(RUN, 0, 0, 0.0, empty, (FRONT_BOX,))
     assert (st.count, st.max_speed_m_s, st.max_displacement_m) == (0, 0.0, 0.0)

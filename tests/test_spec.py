@@ -31,31 +31,31 @@ _INLINE = {"Name": "two", "ColorSpace": "RGB", "RGBPoints": [0, 0, 0, 0, 1, 1, 1
 @pytest.mark.parametrize("path,value,message", [
     ("version", 3, "version: spec version 3 is not supported"),
     ("run", "a/b", "run: expected"),
-    ("views", [], "views: expected a non-empty list"),
+    ("views", [], r"views: expected array of length >= 1, got \[\]"),
     ("views.0.name", "", r"views\[0\].name"),
     ("views.1.name", "side", "view names must be unique"),
-    ("views.0.camera.position", [0, 0], r"views\[0\].camera.position: expected a list of 3"),
+    ("views.0.camera.position", [0, 0], r"views\[0\].camera.position: expected array of length 3, got 2"),
     ("views.0.camera.focal_point", [0, float("nan"), 0], r"views\[0\].camera.focal_point\[1\]"),
     ("views.0.camera.view_up", [0, 2.25, -0.1], r"views\[0\].camera.view_up: parallel"),
     ("views.0.camera.position", [0.5, 0.25, 0.1], r"views\[0\].camera: position and focal_point"),
     ("views.0.camera.view_angle_deg", 180, r"views\[0\].camera.view_angle_deg"),
     ("views.1.camera.parallel_scale_m", 0, r"views\[1\].camera.parallel_scale_m"),
     ("views.0.camera", KeyError, r"views\[0\]: missing camera"),
-    ("views.0.width", 0, r"views\[0\].width: 0 is outside"),
+    ("views.0.width", 0, r"views\[0\].width: expected int >= 1, got 0"),
     ("views.0.height", 10000, r"views\[0\].height"),
     ("views.0.range", [1.0, 0.5], r"views\[0\].range: lower bound"),
     ("views.0.background", [1, 1, 2], r"views\[0\].background"),
-    ("views.0.decimate", 0, r"views\[0\].decimate: 0 is outside"),
-    ("views.0.colormap", 7, r"views\[0\].colormap: expected a string"),
+    ("views.0.decimate", 0, r"views\[0\].decimate: expected int >= 1, got 0"),
+    ("views.0.colormap", 7, r"views\[0\].colormap: expected str \| object, got int"),
     ("views.0.colormap", {**_INLINE, "ColorSpace": "CMYK"}, r"views\[0\].colormap.ColorSpace"),
     ("views.0.colormap", {**_INLINE, "RGBPoints": [0, 0, 0, 0, 1, 1, 1]},
-     r"views\[0\].colormap.RGBPoints: expected x, r, g, b quadruples"),
+     r"views\[0\].colormap.RGBPoints: expected array of length >= 8"),
     ("views.0.colormap", {**_INLINE, "RGBPoints": [1, 0, 0, 0, 0, 1, 1, 1]},
-     r"views\[0\].colormap.RGBPoints: x values must increase"),
+     r"views\[0\].colormap.RGBPoints\[4\]: x 0.0 is below the previous x 1.0"),
     ("views.0.colormap", {**_INLINE, "RGBPoints": [0, 0, 0, 0, 1, 1, 2, 1]},
-     r"views\[0\].colormap.RGBPoints: r, g, b must lie in \[0, 1\]"),
+     r"views\[0\].colormap.RGBPoints\[6\]: color component 2.0 is outside \[0, 1\]"),
     ("views.0.colormap", {"RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1]}, r"views\[0\].colormap: missing Name"),
-    ("views.0.schedule", [], r"views\[0\].schedule: expected a non-empty list"),
+    ("views.0.schedule", [], r"views\[0\].schedule: expected array of length >= 1, got \[\]"),
     ("views.0.schedule.0.t_end_s", -1, r"views\[0\].schedule\[0\].t_end_s"),
     ("views.0.schedule.0.every_steps", 0, r"views\[0\].schedule\[0\].every_steps"),
     ("views.0.schedule.0.every_s", 0, r"views\[0\].schedule\[0\].every_s"),
@@ -63,25 +63,30 @@ _INLINE = {"Name": "two", "ColorSpace": "RGB", "RGBPoints": [0, 0, 0, 0, 1, 1, 1
     ("views.0.schedule.0.when", 1, r"views\[0\].schedule\[0\]: unknown field\(s\) when"),
     ("views.0.t_start_s", 0.0, r"views\[0\]: give a schedule or the single-window keys"),
     ("views.0.colour", "red", r"views\[0\]: unknown field\(s\) colour"),
-    ("sphere_radius_m", 0, r"sphere_radius_m: 0 is outside"),
-    ("regions", {"name": "a"}, "regions: expected a list"),
+    ("sphere_radius_m", 0, r"sphere_radius_m: expected float >= 1e-09, got 0"),
+    ("regions", {"name": "a"}, "regions: expected array, got object"),
     ("regions", [{"name": "a", "lo_m": [0, 0, 0]}], r"regions\[0\]: missing hi_m"),
     ("regions", [{"name": "a", "lo_m": [0, 0, 1], "hi_m": [1, 1, 0]}],
      r"regions\[0\]: lo_m \[0.0, 0.0, 1.0\] exceeds hi_m"),
     ("regions", [{"name": "a", "lo_m": [0, 0, 0], "hi_m": [1, 1, 1]}] * 2,
      "region names must be unique"),
-    ("views.0.schedule.0.regions", "front", r"views\[0\].schedule\[0\].regions: expected a list"),
+    ("views.0.schedule.0.regions", "front", r"views\[0\].schedule\[0\].regions: expected array, got str"),
     ("views.0.schedule.0.regions", ["nowhere"],
      r"views\[0\].schedule\[0\].regions\[0\]: no region named 'nowhere'"),
     ("events", [{"name": "onset"}], r"events\[0\]: missing time_s"),
-    ("events", [{"name": "onset", "time_s": -0.1}], r"events\[0\].time_s: -0.1 is outside"),
+    ("events", [{"name": "onset", "time_s": -0.1}], r"events\[0\].time_s: expected float >= 0.0, got -0.1"),
     ("events", [{"name": "onset", "time_s": 0.1, "tolerance_s": float("inf")}],
      r"events\[0\].tolerance_s"),
     ("events", [{"name": "onset", "time_s": 0.1}] * 2, "event names must be unique"),
-    ("budget", {"frames": 0}, r"budget.frames: 0 is outside"),
+    ("budget", {"frames": 0}, r"budget.frames: expected int >= 1, got 0"),
     ("budget", {"frames": 10, "pixels": 3}, r"budget: unknown field\(s\) pixels"),
-    ("budget", {"bytes": 1.5}, r"budget.bytes: expected an integer"),
-    ("provenance", [1], "provenance: expected an object"),
+    ("budget", {"bytes": 1.5}, r"budget.bytes: expected int \| null, got float"),
+    ("provenance", [1], "provenance: expected object, got array"),
+    ("views.0.colormap", "No Such Preset",
+     r"views\[0\].colormap: 'No Such Preset' is neither a built-in ParaView preset"),
+    ("views.0.colormap", "Viridis", r"views\[0\].colormap: 'Viridis' is neither"),  # names exact
+    ("spec_key", 1, r"^spec: unknown field\(s\) spec_key"),
+    ("run", KeyError, r"^spec: missing run"),
 ])
 def test_bad_spec_names_the_field(path, value, message):
     with pytest.raises(SpecError, match=message):
@@ -259,3 +264,45 @@ def test_events_budget_provenance_and_inline_colormap_round_trip(tmp_path):
     assert spec.events[1].tolerance_s == 0.0 and spec.budget.frames == 120
     assert spec.views[0].colormap.rgb_points == (0, 0, 0, 0, 1, 1, 1, 1)
     assert spec.planned_frames(0.3, 0.001) == (150 // 20 + 1) + (150 // 20 + 1)
+
+
+@pytest.mark.parametrize("name", ["Cool to Warm", "Viridis (matplotlib)", "Turbo", "viridis",
+                                  "coolwarm", "RdBu_r", "gray"])
+def test_a_paraview_or_matplotlib_colormap_name_is_accepted(name):
+    spec = Spec.from_dict(with_change("views.0.colormap", name))
+    assert spec.views[0].colormap == name and Spec.from_dict(spec.to_dict()) == spec
+
+
+def test_the_one_window_shorthand_names_the_view_in_errors():
+    d = base()
+    view = {k: v for k, v in d["views"][0].items() if k != "schedule"}
+    d["views"][0] = {**view, "t_start_s": 0.1, "every_steps": 0}
+    with pytest.raises(SpecError, match=r"^views\[0\].every_steps: expected int >= 1, got 0"):
+        Spec.from_dict(d)
+    d["views"][0] = {**view, "t_start_s": 0.1, "every_steps": 5}
+    assert Spec.from_dict(d).views[0].schedule == (Window(t_start_s=0.1, every_steps=5),)
+    assert d["views"][0]["t_start_s"] == 0.1  # the caller's object is left as it was
+
+
+def test_numbers_that_json_cannot_hold_are_refused_from_python_objects_too():
+    for value in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(SpecError, match=r"views\[0\].camera.position\[0\]: expected a "
+                                            r"finite number"):
+            Spec.from_dict(with_change("views.0.camera.position", [value, 0.0, 0.0]))
+
+
+def test_what_to_dict_writes_reads_back_through_the_document_types():
+    """The model's JSON and the document types (the decoder, the stored schema) agree."""
+    import msgspec
+    from minority.protocol.spec import SpecDocument
+
+    d = base()
+    d["views"][0]["colormap"] = dict(_INLINE)
+    d["regions"] = [{"name": "toe", "lo_m": [0, 0, 0], "hi_m": [1, 1, 1]}]
+    d["views"][0]["schedule"] = [{"t_start_s": 0.0, "t_end_s": None, "every_s": 0.01,
+                                  "regions": ["toe"]}]
+    d["events"] = [{"name": "onset", "time_s": 0.1, "tolerance_s": 0.01}]
+    d["budget"] = {"frames": 10, "bytes": None}
+    spec = Spec.from_dict(d)
+    doc = msgspec.convert(spec.to_dict(), SpecDocument)
+    assert Spec.from_document(doc) == spec  # and convert refused no key to_dict wrote

@@ -1,68 +1,25 @@
-"""VTK's camera model: view and projection matrices, pixel projection, primary rays.
+"""The renderer's camera: primary rays through pixel centers (numba, inlined by the ray
+kernels in render_server.cast and render_server.render).
 
-Conventions follow vtkCamera: the view angle is the full vertical angle in degrees; with
-parallel projection, parallel_scale is half the view height in m. Image pixels: x to the
-right, y down (row 0 at the top), pixel centers at (i + 0.5, j + 0.5).
+The camera model itself (frame, frustum, projection of points to pixels) lives in
+protocol.projection, shared with the sim's visibility; the rays here are its inverse: the
+ray through pixel (i, j) projects to the pixel center (i + 0.5, j + 0.5).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from minority.protocol.projection import CameraBasis, camera_basis, half_extents, project
 from minority.protocol.spec import Camera
 from numba import njit, prange
 
+__all__ = ["CameraBasis", "RayFrame", "basis", "pixel_ray", "pixel_ray_unnormalized",
+           "primary_rays", "project", "ray_frame"]
 
-@dataclass(frozen=True)
-class CameraBasis:
-    """Orthonormal camera frame in world coordinates (m)."""
-
-    position: np.ndarray  # [3]
-    right: np.ndarray  # [3], image +x
-    up: np.ndarray  # [3], image +y (orthogonalized view up)
-    forward: np.ndarray  # [3], from position toward the focal point
-    distance: float  # position to focal point, m
-
-
-def basis(camera: Camera) -> CameraBasis:
-    return CameraBasis(*camera.frame())
-
-
-def view_matrix(camera: Camera) -> np.ndarray:
-    """World to camera coordinates [4, 4] (camera looks down -z, +y up)."""
-    b = basis(camera)
-    m = np.eye(4)
-    m[0, :3], m[1, :3], m[2, :3] = b.right, b.up, -b.forward
-    m[:3, 3] = -m[:3, :3] @ b.position
-    return m
-
-
-def projection_matrix(camera: Camera, aspect: float, near: float, far: float) -> np.ndarray:
-    """Camera to clip coordinates [4, 4], OpenGL/VTK convention (NDC z in [-1, 1])."""
-    m = np.zeros((4, 4))
-    if camera.parallel_projection:
-        s = camera.parallel_scale_m
-        m[0, 0], m[1, 1] = 1.0 / (s * aspect), 1.0 / s
-        m[2, 2], m[2, 3] = -2.0 / (far - near), -(far + near) / (far - near)
-        m[3, 3] = 1.0
-    else:
-        f = 1.0 / math.tan(math.radians(camera.view_angle_deg) / 2.0)
-        m[0, 0], m[1, 1] = f / aspect, f
-        m[2, 2], m[2, 3] = -(far + near) / (far - near), -2.0 * far * near / (far - near)
-        m[3, 2] = -1.0
-    return m
-
-
-def project(points: np.ndarray, camera: Camera, width: int, height: int,
-            near: float = 0.01, far: float = 1000.0) -> np.ndarray:
-    """Pixel coordinates [n, 2] (x right, y down, px) of world points [n, 3] (m)."""
-    pv = projection_matrix(camera, width / height, near, far) @ view_matrix(camera)
-    h = np.c_[points, np.ones(len(points))] @ pv.T
-    ndc = h[:, :2] / h[:, 3:4]
-    return np.c_[(ndc[:, 0] + 1.0) * 0.5 * width, (1.0 - ndc[:, 1]) * 0.5 * height]
+basis = camera_basis  # the renderer's name for the camera frame
 
 
 class RayFrame(NamedTuple):
@@ -78,13 +35,9 @@ class RayFrame(NamedTuple):
 
 
 def ray_frame(camera: Camera, width: int, height: int) -> RayFrame:
-    b = basis(camera)
-    aspect = width / height
-    if camera.parallel_projection:
-        hh = camera.parallel_scale_m
-    else:
-        hh = math.tan(math.radians(camera.view_angle_deg) / 2.0)
-    return RayFrame(b.position, b.right, b.up, b.forward, hh * aspect, hh,
+    b = camera_basis(camera)
+    half_width, half_height = half_extents(camera, width / height)
+    return RayFrame(b.position, b.right, b.up, b.forward, half_width, half_height,
                     not camera.parallel_projection)
 
 

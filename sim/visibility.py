@@ -27,6 +27,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from minority.protocol.projection import (
+    camera_basis,
+    camera_coordinates,
+    in_frame,
+    pixels_per_unit,
+    to_pixels,
+)
 from minority.protocol.view import View
 from numba import njit, prange
 
@@ -38,20 +45,16 @@ def visible_mask(positions: np.ndarray, view: View, radius_m: float) -> np.ndarr
     """[n] bool: particles (positions [n, 3], m) that may show in `view`'s image as
     spheres of `radius_m` (m)."""
     cam = view.camera
-    position, right, up, forward, _ = cam.frame()
-    rel = np.asarray(positions, dtype=np.float64) - position
-    u, v, d = rel @ right, rel @ up, rel @ forward  # camera coordinates, m
+    u, v, d = camera_coordinates(positions, camera_basis(cam))  # m
     w, h = view.width, view.height
     near = d > radius_m  # the camera is outside the sphere, in front of it
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        x, y = to_pixels(u, v, d, cam, w, h)  # px: image x right, y down
+        k = pixels_per_unit(cam, h)  # px per m (parallel) or per tangent (perspective)
         if cam.parallel_projection:
-            k = h / (2.0 * cam.parallel_scale_m)  # px per m
-            x, y = u * k, v * k
             r_in = np.full(len(d), k * radius_m)
             r_out = r_in
         else:
-            k = h / (2.0 * math.tan(math.radians(cam.view_angle_deg) / 2.0))  # px per tangent
-            x, y = k * u / d, k * v / d
             r_in = k * radius_m / d  # the central cross-section's disk
             # silhouette: within the cone of half-angle asin(r / D) around the center's ray,
             # whose projection reaches tan(theta + alpha) - tan(theta) from the center
@@ -59,13 +62,13 @@ def visible_mask(positions: np.ndarray, view: View, radius_m: float) -> np.ndarr
             alpha = np.arcsin(np.minimum(radius_m / np.sqrt(u * u + v * v + d * d), 1.0))
             r_out = np.where(theta + alpha < 0.5 * math.pi - 1e-6,
                              k * (np.tan(theta + alpha) - np.tan(theta)), np.inf)
-    x, y = x + 0.5 * w, 0.5 * h - y  # px: image x right, y down; pixel centers at i + 0.5
+        framed = in_frame(x, y, r_out, w, h)  # the silhouette's disk reaches the image
     typical = float(np.median(r_in[near])) if near.any() else 0.0
     # bins of whole pixels, a few per disk radius, at most MAX_BINS per image
     b = int(max(1, math.floor(typical / BINS_PER_RADIUS), math.ceil(math.sqrt(w * h / MAX_BINS))))
     cover = np.full((-(-h // b), -(-w // b)), np.inf)
     _cover(x, y, d, r_in, near, b, cover)
-    return _visible(x, y, d, r_out, near, radius_m, b, w, h, cover)
+    return _visible(x, y, d, r_out, near, framed, radius_m, b, cover)
 
 
 @njit(cache=True)
@@ -94,9 +97,9 @@ def _cover(x, y, d, r_in, near, b, cover):
 
 
 @njit(cache=True, parallel=True)
-def _visible(x, y, d, r_out, near, radius, b, w, h, cover):
-    """Keep a particle unless every bin holding a pixel center inside its silhouette is
-    covered nearer than its front (d - radius), or none is in the image."""
+def _visible(x, y, d, r_out, near, framed, radius, b, cover):
+    """Keep a particle unless its silhouette misses the image (framed False), or every bin
+    holding a pixel center inside it is covered nearer than its front (d - radius)."""
     nby, nbx = cover.shape
     keep = np.zeros(len(x), dtype=np.bool_)
     for p in prange(len(x)):
@@ -107,7 +110,7 @@ def _visible(x, y, d, r_out, near, radius, b, w, h, cover):
         if not rad < 1e9:
             keep[p] = True
             continue
-        if x[p] + rad < 0.0 or x[p] - rad > w or y[p] + rad < 0.0 or y[p] - rad > h:
+        if not framed[p]:
             continue  # out of view
         front = d[p] - radius
         j0 = max(int(math.floor((y[p] - rad) / b)), 0)

@@ -15,7 +15,6 @@ predicted displacement magnitude with a margin. Axes: x is the flow direction, z
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +27,8 @@ from minority.gns.events import (
     find_events,
     moving_points,
 )
-from minority.protocol.spec import SPEC_VERSION, Spec
+from minority.protocol.projection import orthonormal_frame, view_tangent
+from minority.protocol.spec import SPEC_VERSION, Camera, Spec
 
 ORACLE_VERSION = "minority-oracle/1"
 VIEW_ANGLE_DEG = 30.0
@@ -65,23 +65,22 @@ class OracleOptions:
 
 
 def fit_camera(lo: np.ndarray, hi: np.ndarray, direction, view_up, aspect: float,
-               view_angle_deg: float = VIEW_ANGLE_DEG) -> dict:
-    """The VTK perspective camera looking along `direction` that frames the box [lo, hi] (m)
-    in an image of width/height `aspect`: the nearest distance at which every corner lies
-    inside the view frustum."""
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    right = np.cross(d, view_up)
-    right /= np.linalg.norm(right)
-    up = np.cross(right, d)
+               view_angle_deg: float = VIEW_ANGLE_DEG) -> Camera:
+    """The VTK perspective camera looking along `direction` [3] that frames the box [lo, hi]
+    ([3] each, m) in an image of width/height `aspect`: the nearest distance at which every
+    corner lies inside the view frustum (protocol.projection.in_view), one of them on its
+    edge. Its view up is `view_up` [3] orthogonalized."""
+    right, up, d = orthonormal_frame(direction, view_up)
     center = 0.5 * (lo + hi)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])]) - center
-    tan = math.tan(math.radians(view_angle_deg) / 2.0)
+    tan = view_tangent(view_angle_deg)
     depth = corners @ d
     need = np.maximum(np.abs(corners @ right) / (tan * aspect), np.abs(corners @ up) / tan) - depth
     distance = float(need.max())
-    return {"position": (center - distance * d).tolist(), "focal_point": center.tolist(),
-            "view_up": up.tolist(), "view_angle_deg": view_angle_deg}
+    return Camera(position=tuple((center - distance * d).tolist()),
+                  focal_point=tuple(center.tolist()), view_up=tuple(up.tolist()),
+                  view_angle_deg=view_angle_deg)
 
 
 def _segments(t0: float, t1: float, k: int, fast: tuple[float, float] | None = None,
@@ -221,7 +220,7 @@ class Oracle:
             pad = o.margin * (hi - lo).max() * 0.5 + self.spacing
             camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)
             out_views.append({
-                "name": name, "camera": camera, "width": o.width, "height": o.height,
+                "name": name, "camera": camera.to_dict(), "width": o.width, "height": o.height,
                 "field": "displacement", "colormap": o.colormap,
                 "range": [0.0, float(hi_d * (1.0 + o.margin))],
                 "occlusion_cull": o.occlusion_cull,

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from minority.gns.export import write_hdf5
 from minority.gns.oracle import Oracle, OracleOptions, fit_camera
-from minority.protocol import Spec
+from minority.protocol import Camera, Spec
 from minority.protocol.paraview import read_pvcc
+from minority.protocol.projection import in_view
 from minority.render_server.camera import project
 
 DT = 0.005  # s per rollout frame
@@ -119,11 +120,18 @@ def test_cameras_frame_the_column_and_the_deposit(oracle):
 
 def test_fit_camera_touches_the_frustum():
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.4, 0.1, 0.2])
+    fitted = fit_camera(lo, hi, (0, 1, 0), (0, 0, 1), 4 / 3)
+    assert isinstance(fitted, Camera)
     cam = Spec.from_dict({"version": 2, "run": "r", "views": [{
-        "name": "v", "camera": fit_camera(lo, hi, (0, 1, 0), (0, 0, 1), 4 / 3)}]}).views[0].camera
+        "name": "v", "camera": fitted.to_dict()}]}).views[0].camera
+    assert cam == fitted  # a valid spec camera, unchanged by the spec's checks
     corners = np.array([[x, y, z] for x in (0, 0.4) for y in (0, 0.1) for z in (0, 0.2)])
     px = project(corners, cam, 400, 300)
     assert px[:, 0].min() == pytest.approx(0.0, abs=0.5) or px[:, 1].min() == pytest.approx(0.0, abs=0.5)
+    # every corner in the frustum, and one on its edge: the box grown by 0.1 % is not
+    center = 0.5 * (lo + hi)
+    assert in_view(center + (corners - center) * (1.0 - 1e-9), cam, 400, 300).all()
+    assert not in_view(center + (corners - center) * 1.001, cam, 400, 300).all()
 
 
 def test_cli_writes_spec_and_cameras(tmp_path):

@@ -44,7 +44,7 @@ def spec_for(scene: Path):
     size = np.array(tomllib.loads(scene.read_text())["domain"]["size_m"], float)
     lo, hi = np.zeros(3), np.array([size[0] * 0.6, size[1], size[2]])
     return Spec.from_dict({"version": 2, "run": RUN, "views": [{
-        "name": "side", "camera": fit_camera(lo, hi, (0, 1, 0), (0, 0, 1), 4 / 3),
+        "name": "side", "camera": fit_camera(lo, hi, (0, 1, 0), (0, 0, 1), 4 / 3).to_dict(),
         "width": 1024, "height": 768, "field": "displacement", "range": [0.0, 0.4],
         "schedule": [{"every_steps": EVERY}]}]})
 

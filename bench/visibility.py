@@ -18,7 +18,7 @@ import time
 import h5py
 import numpy as np
 from minority.gns.oracle import AERIAL_DIRECTION, fit_camera
-from minority.protocol.spec import Camera, View
+from minority.protocol.spec import View
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import seed_particles
 from minority.sim.visibility import visible_mask
@@ -31,7 +31,7 @@ WIDTH, HEIGHT = 1024, 768
 def views_for(positions: np.ndarray, margin: float = 0.1) -> list[View]:
     lo, hi = positions.min(axis=0), positions.max(axis=0)
     pad = margin * (hi - lo).max() * 0.5
-    return [View(name, Camera(**fit_camera(lo - pad, hi + pad, d, up, WIDTH / HEIGHT)),
+    return [View(name, fit_camera(lo - pad, hi + pad, d, up, WIDTH / HEIGHT),
                  WIDTH, HEIGHT) for name, (d, up) in VIEWS.items()]
 
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import msgspec
-import numpy as np
 from minority.protocol import check
 from minority.protocol.check import RGB, Finite, Name, NonNegative, Vec3
 from minority.protocol.errors import SpecError
@@ -76,18 +75,6 @@ class Camera(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         if math.hypot(*cross) <= 1e-12 * math.hypot(*direction) * max(math.hypot(*up), 1e-300):
             raise SpecError(f"{where}.view_up: parallel to the view direction (or zero)")
         return self
-
-    def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """The camera's orthonormal frame in world coordinates, VTK's convention: position
-        [3] (m), right [3] (image +x), up [3] (the view up orthogonalized, image +y), forward
-        [3] (toward the focal point), and the distance to the focal point (m)."""
-        position = np.asarray(self.position, dtype=np.float64)
-        forward = np.asarray(self.focal_point, dtype=np.float64) - position
-        distance = float(np.linalg.norm(forward))
-        forward /= distance
-        right = np.cross(forward, np.asarray(self.view_up, dtype=np.float64))
-        right /= np.linalg.norm(right)
-        return position, right, np.cross(right, forward), forward, distance
 
     def to_dict(self) -> dict:
         return check.to_json(self)

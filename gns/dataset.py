@@ -22,6 +22,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 from minority.gns.metrics import deposit
+from minority.protocol.trajectory import read_sim
 
 FORMAT = "minority-gns-dataset/1"
 SPLITS = ("train", "valid", "test")
@@ -81,14 +82,13 @@ def coarse_grain(positions: np.ndarray, spacing_m: float, factor: int, method: s
 def read_sim_trajectory(path: Path, stride: int, factor: int = 1,
                         method: str = "mean") -> tuple[np.ndarray, dict]:
     """Positions every stride-th frame [frames, n, 3], coarse-grained by `factor` with
-    `method` (coarse_grain), and the run's attributes (particle_spacing_m: after it;
-    mpm_deposit: gns.metrics.deposit of the run itself, before coarse-graining)."""
-    with h5py.File(path, "r") as f:
-        frames = len(f["time"])
-        pos = f["positions"][:frames:stride]
-        attrs = {k: f.attrs[k] for k in ("output_interval_s", "bounds_m", "particle_spacing_m",
-                                         "scene_name")}
-        attrs["friction_angle_deg"] = float(f["material"][0])
+    `method` (coarse_grain), and the run's attributes (protocol.trajectory.read_sim;
+    particle_spacing_m: after coarse-graining; mpm_deposit: gns.metrics.deposit of the run
+    itself, before coarse-graining)."""
+    try:
+        pos, attrs = read_sim(path, stride)
+    except (OSError, KeyError) as exc:
+        raise DatasetError(f"{path}: cannot read the MPM run ({exc})") from None
     if not np.isfinite(pos).all():
         raise DatasetError(f"{path}: non-finite positions")
     spacing = float(attrs["particle_spacing_m"])

@@ -10,7 +10,13 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from minority.sim.output import FORMAT, PARTICLE_TYPE_SAND, open_trajectory
+from minority.protocol.trajectory import (
+    PARTICLE_TYPE_SAND,
+    SIM_FORMAT,
+    open_trajectory,
+    read_rollout,
+    read_sim,
+)
 from minority.sim.runner import run_scene
 from minority.sim.scene import builtin_scene_path, load_scene
 
@@ -43,7 +49,7 @@ def test_run_scene_writes_trajectory(tmp_path):
         assert np.allclose(disp, pos - pos[0], atol=1e-6)
         assert np.isfinite(pos).all()
         a = f.attrs
-        assert a["format"] == FORMAT and a["n_particles"] == n
+        assert a["format"] == SIM_FORMAT and a["n_particles"] == n
         assert json.loads(a["units"])["positions"] == "m"
         assert a["output_interval_s"] == 0.02
         assert a["particle_spacing_m"] == pytest.approx(0.01)
@@ -53,6 +59,13 @@ def test_run_scene_writes_trajectory(tmp_path):
         assert json.loads(a["material_table"])["friction_angle_deg"] == 30.0
     text = log.getvalue()
     assert "frame 11/11 written" in text and "particle-steps/s" in text
+    # the readers of the layout's one home (protocol.trajectory) read the run
+    got, attrs = read_sim(out, stride=5)
+    np.testing.assert_array_equal(got, pos[::5])
+    assert attrs["friction_angle_deg"] == 30.0 and attrs["scene_name"] == "tiny"
+    r = read_rollout(out)
+    assert r["frame_interval_s"] == 0.02 and r["positions"].shape == (frames, n, 3)
+    assert r["material_table"]["friction_angle_deg"] == 30.0 and r["dt_mode"] == "cfl"
 
 
 def test_quiet_run_prints_nothing(tmp_path):

@@ -1,7 +1,9 @@
-"""The MPM sweep behind the GNS dataset: plan scenes from a config, run them with `minority sim`.
+"""The MPM sweep behind the GNS dataset: its config and the scenes it plans (geometry and
+friction drawn per split, deterministic in the config's seed). minority.sweep runs them.
 
-gns does not import sim: scenes are TOML text from the config's template, and each run is a
-`python -m minority sim` subprocess writing one HDF5 trajectory (format in sim/output.py).
+scene_toml, complete and run_sweep, marked "superseded", are the old runner (a `python -m
+minority sim` subprocess per scene, scenes from column_template.toml); they stay until
+`minority oracle dataset` calls minority.sweep.run_sweep, then go with the template.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ class ScenePlan:
 @dataclass
 class SweepConfig:
     path: Path
-    template: str
+    template: str  # superseded (the old runner's scene template text; "" when not named)
     seed: int
     duration_s: float
     output_interval_s: float
@@ -95,7 +97,7 @@ def load_config(path: str | Path) -> SweepConfig:
     path = Path(path)
     try:
         raw = _read(path)
-        template = Path(raw["template"]).read_text()
+        template = Path(raw["template"]).read_text() if "template" in raw else ""
         cfg = SweepConfig(path=path, template=template, seed=int(raw["seed"]),
                           duration_s=float(raw["duration_s"]),
                           output_interval_s=float(raw["output_interval_s"]),
@@ -199,7 +201,7 @@ def plan(cfg: SweepConfig) -> list[ScenePlan]:
     return plans
 
 
-def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:
+def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:  # superseded: minority.sweep
     return cfg.template.format(
         cell_size_m=float(cfg.geometry["cell_size_m"]) / cfg.coarse_grain,
         name=p.name, domain_length_m=p.domain_length_m, width_m=p.width_m,
@@ -207,7 +209,7 @@ def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:
         duration_s=cfg.duration_s, output_interval_s=cfg.output_interval_s)
 
 
-def complete(h5_path: Path, duration_s: float, interval_s: float) -> bool:
+def complete(h5_path: Path, duration_s: float, interval_s: float) -> bool:  # superseded
     """True if h5_path holds every frame of a finished run."""
     want = int(math.floor(duration_s / interval_s + 1e-9)) + 1
     try:
@@ -218,7 +220,7 @@ def complete(h5_path: Path, duration_s: float, interval_s: float) -> bool:
 
 
 def run_sweep(cfg: SweepConfig, out_dir: str | Path, *, jobs: int = 1, threads: int = 1,
-              log=sys.stderr) -> list[tuple[ScenePlan, Path]]:
+              log=sys.stderr) -> list[tuple[ScenePlan, Path]]:  # superseded: minority.sweep
     """Run every planned scene not already complete in out_dir; return (plan, HDF5 path)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """Generators of scene TOML text for parameterized column collapses.
 
-Used by the tests (validation, extreme cases) and for training-data sweeps of varied
-geometry and friction. Lengths in m, angles in degrees, moduli in Pa.
+Used by the tests (validation, extreme cases), the demo, and the GNS training-data sweep
+(minority.sweep) of varied geometry and friction. Lengths in m, angles in degrees, moduli in Pa.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ class ColumnSpec:
     dp_cone: str = DEFAULT_DP_CONE.value  # sim.scene.DPCone value
     floor_friction: float = 0.5
     side_friction: float = 0.0
+    top_friction: float | None = None  # the lid (z_max); None: floor_friction
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
     velocity_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     duration_s: float = 0.2
@@ -47,6 +48,7 @@ def _vec(v) -> str:
 
 def channel_column_toml(c: ColumnSpec, name: str = "column") -> str:
     """TOML text of a channel column scene."""
+    top = "" if c.top_friction is None else f"z_max = {float(c.top_friction)!r}\n"
     return f"""name = "{name}"
 gravity_m_s2 = {_vec(c.gravity_m_s2)}
 
@@ -74,7 +76,7 @@ velocity_m_s = {_vec(c.velocity_m_s)}
 friction = {float(c.floor_friction)!r}
 y_min = {float(c.side_friction)!r}
 y_max = {float(c.side_friction)!r}
-
+{top}
 [time]
 duration_s = {float(c.duration_s)!r}
 output_interval_s = {float(c.output_interval_s)!r}

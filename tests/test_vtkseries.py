@@ -1,0 +1,74 @@
+"""VTK series (protocol.vtkseries): each .vtp read back with vtk's own reader holds the points,
+one vertex per particle, every field, the asked magnitudes and TimeValue; the .pvd is a
+ParaView collection listing the files by time."""
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+from minority.protocol.vtkseries import VtkSeries
+
+pytest.importorskip("vtkmodules")
+
+
+def read_vtp(path):
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    poly = reader.GetOutput()
+    pd = poly.GetPointData()
+    arrays = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i))
+              for i in range(pd.GetNumberOfArrays())}
+    t = poly.GetFieldData().GetArray("TimeValue")
+    return poly, vtk_to_numpy(poly.GetPoints().GetData()), arrays, t.GetValue(0)
+
+
+def frame(k, n=40):
+    rng = np.random.default_rng(k)
+    pos = rng.uniform(0.0, 0.1, (n, 3)).astype(np.float32)
+    return pos, {"velocity": rng.normal(0, 1, (n, 3)).astype(np.float32),
+                 "id": np.arange(n, dtype=np.uint32),
+                 "stress_pa": rng.normal(0, 1e3, n).astype(np.float64)}
+
+
+def test_frames_read_back_with_their_fields_and_time(tmp_path):
+    series = VtkSeries(tmp_path / "vtk", "run", magnitudes=True)
+    for k, t in ((0, 0.0), (7, 0.0175)):
+        pos, fields = frame(k)
+        path = series.add(k, t, pos, fields)
+        assert path == tmp_path / "vtk" / f"run_{k:06d}.vtp"
+        poly, points, arrays, time_s = read_vtp(path)
+        assert poly.GetNumberOfPoints() == 40 and poly.GetNumberOfVerts() == 40
+        np.testing.assert_array_equal(points, pos)
+        assert time_s == t
+        assert set(arrays) == {"velocity", "velocity_magnitude", "id", "stress_pa"}
+        for name, values in fields.items():
+            np.testing.assert_array_equal(arrays[name], values)
+            assert arrays[name].dtype == values.dtype
+        np.testing.assert_allclose(arrays["velocity_magnitude"],
+                                   np.linalg.norm(fields["velocity"], axis=1), rtol=1e-6)
+
+
+def test_magnitudes_only_when_asked(tmp_path):
+    series = VtkSeries(tmp_path, "plain")
+    pos, fields = frame(1)
+    _, _, arrays, _ = read_vtp(series.add(1, 0.5, pos, fields))
+    assert set(arrays) == set(fields)
+
+
+def test_the_pvd_lists_the_files_by_time(tmp_path):
+    series = VtkSeries(tmp_path, "r&d")  # a stem that XML must escape
+    times = {3: 0.30000000000000004, 1: 0.1, 2: 0.2}  # added out of order; exact times
+    for k, t in times.items():
+        series.add(k, t, *frame(k))
+    pvd = series.close()
+    assert pvd == tmp_path / "r&d.pvd"
+    root = ET.parse(pvd).getroot()
+    assert root.tag == "VTKFile" and root.get("type") == "Collection"
+    sets = root.find("Collection").findall("DataSet")
+    assert [float(d.get("timestep")) for d in sets] == sorted(times.values())
+    assert [d.get("file") for d in sets] == [f"r&d_{k:06d}.vtp" for k in (1, 2, 3)]
+    assert all((tmp_path / d.get("file")).is_file() for d in sets)

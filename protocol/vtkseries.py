@@ -1,6 +1,6 @@
 """Particle frames as a VTK series for ParaView: one binary .vtp per frame and a .pvd.
 
-Each {stem}_{index:06d}.vtp holds the particles as points with one vertex cell each, every
+Each {stem}_{step:06d}.vtp holds the particles as points with one vertex cell each, every
 field as a point array (a vector field [n, 3] also as {name}_magnitude when asked), and the
 frame's time (s) as the field-data array TimeValue. {stem}.pvd lists the files by time, so
 ParaView's time controls step through them. vtk is imported when a frame is written.
@@ -8,12 +8,31 @@ ParaView's time controls step through them. vtk is imported when a frame is writ
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 MAGNITUDE_SUFFIX = "_magnitude"
+
+
+class FrameLike(Protocol):
+    """What a series writes: a Frame, or any object with these (e.g. an assembled step)."""
+
+    step: int  # the number in the file name: a sim step, or a frame of a rollout
+    time_s: float  # s
+    positions: np.ndarray  # [n, 3], m
+    fields: dict[str, np.ndarray]  # name -> [n] or [n, k] point data
+
+
+@dataclass
+class Frame:
+    step: int
+    time_s: float  # s
+    positions: np.ndarray  # [n, 3], m
+    fields: dict[str, np.ndarray]  # name -> [n] or [n, k]
 
 
 class VtkSeries:
@@ -26,15 +45,15 @@ class VtkSeries:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.entries: list[tuple[float, str]] = []
 
-    def add(self, index: int, time_s: float, positions: np.ndarray,
-            fields: dict[str, np.ndarray]) -> Path:
-        """Write frame `index` at time_s (s): positions [n, 3] (m), fields name -> [n] or
-        [n, k] point data (dtypes kept). Returns the .vtp path."""
+    def add(self, frame: FrameLike) -> Path:
+        """Write one frame as {stem}_{frame.step:06d}.vtp at frame.time_s (s); point data
+        dtypes are kept. Returns the .vtp path."""
         from vtkmodules.util.numpy_support import numpy_to_vtk
         from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkPoints
         from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
         from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
 
+        positions, fields = frame.positions, frame.fields
         n = len(positions)
         poly, pts, verts = vtkPolyData(), vtkPoints(), vtkCellArray()
         pts.SetData(numpy_to_vtk(np.ascontiguousarray(positions), deep=True))
@@ -54,9 +73,9 @@ class VtkSeries:
             poly.GetPointData().AddArray(array)
         t = vtkDoubleArray()
         t.SetName("TimeValue")
-        t.InsertNextValue(time_s)
+        t.InsertNextValue(frame.time_s)
         poly.GetFieldData().AddArray(t)
-        path = self.directory / f"{self.stem}_{index:06d}.vtp"
+        path = self.directory / f"{self.stem}_{frame.step:06d}.vtp"
         w = vtkXMLPolyDataWriter()
         w.SetFileName(str(path))
         w.SetInputData(poly)
@@ -64,7 +83,7 @@ class VtkSeries:
         w.EncodeAppendedDataOff()
         if not w.Write():
             raise OSError(f"cannot write {path}")
-        self.entries.append((float(time_s), path.name))
+        self.entries.append((float(frame.time_s), path.name))
         return path
 
     def close(self) -> Path:

@@ -6,7 +6,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from minority.protocol.vtkseries import VtkSeries
+from minority.protocol.vtkseries import Frame, VtkSeries
 
 pytest.importorskip("vtkmodules")
 
@@ -26,19 +26,20 @@ def read_vtp(path):
     return poly, vtk_to_numpy(poly.GetPoints().GetData()), arrays, t.GetValue(0)
 
 
-def frame(k, n=40):
+def frame(k, t, n=40):
     rng = np.random.default_rng(k)
     pos = rng.uniform(0.0, 0.1, (n, 3)).astype(np.float32)
-    return pos, {"velocity": rng.normal(0, 1, (n, 3)).astype(np.float32),
-                 "id": np.arange(n, dtype=np.uint32),
-                 "stress_pa": rng.normal(0, 1e3, n).astype(np.float64)}
+    return Frame(k, t, pos, {"velocity": rng.normal(0, 1, (n, 3)).astype(np.float32),
+                             "id": np.arange(n, dtype=np.uint32),
+                             "stress_pa": rng.normal(0, 1e3, n).astype(np.float64)})
 
 
 def test_frames_read_back_with_their_fields_and_time(tmp_path):
     series = VtkSeries(tmp_path / "vtk", "run", magnitudes=True)
     for k, t in ((0, 0.0), (7, 0.0175)):
-        pos, fields = frame(k)
-        path = series.add(k, t, pos, fields)
+        f = frame(k, t)
+        pos, fields = f.positions, f.fields
+        path = series.add(f)
         assert path == tmp_path / "vtk" / f"run_{k:06d}.vtp"
         poly, points, arrays, time_s = read_vtp(path)
         assert poly.GetNumberOfPoints() == 40 and poly.GetNumberOfVerts() == 40
@@ -54,16 +55,16 @@ def test_frames_read_back_with_their_fields_and_time(tmp_path):
 
 def test_magnitudes_only_when_asked(tmp_path):
     series = VtkSeries(tmp_path, "plain")
-    pos, fields = frame(1)
-    _, _, arrays, _ = read_vtp(series.add(1, 0.5, pos, fields))
-    assert set(arrays) == set(fields)
+    f = frame(1, 0.5)
+    _, _, arrays, _ = read_vtp(series.add(f))
+    assert set(arrays) == set(f.fields)
 
 
 def test_the_pvd_lists_the_files_by_time(tmp_path):
     series = VtkSeries(tmp_path, "r&d")  # a stem that XML must escape
     times = {3: 0.30000000000000004, 1: 0.1, 2: 0.2}  # added out of order; exact times
     for k, t in times.items():
-        series.add(k, t, *frame(k))
+        series.add(frame(k, t))
     pvd = series.close()
     assert pvd == tmp_path / "r&d.pvd"
     root = ET.parse(pvd).getroot()
@@ -72,3 +73,18 @@ def test_the_pvd_lists_the_files_by_time(tmp_path):
     assert [float(d.get("timestep")) for d in sets] == sorted(times.values())
     assert [d.get("file") for d in sets] == [f"r&d_{k:06d}.vtp" for k in (1, 2, 3)]
     assert all((tmp_path / d.get("file")).is_file() for d in sets)
+
+
+def test_an_assembled_step_is_a_frame(tmp_path):
+    """replay exports the render server's assembled steps as they are."""
+    from minority.render_server.assemble import AssembledStep
+
+    f = frame(12, 0.06)
+    step = AssembledStep(step=12, time_s=0.06, positions=f.positions, fields=f.fields,
+                         spacing_m=0.01, ranks_expected=1, ranks_received=1, nbytes=0,
+                         receive_s=0.0, incomplete=False)
+    series = VtkSeries(tmp_path, "run")
+    _, points, arrays, time_s = read_vtp(series.add(step))
+    np.testing.assert_array_equal(points, f.positions)
+    assert set(arrays) == set(f.fields) and time_s == 0.06
+    assert 'file="run_000012.vtp"' in series.close().read_text()

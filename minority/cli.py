@@ -1,4 +1,10 @@
-"""The `minority` command: argument parsing only; the work lives in the packages."""
+"""The `minority` command: argument parsing only; the work lives in the packages.
+
+Each command is a parser builder (`_serve_parser`) beside its handler (`_cmd_serve`);
+`build_parser` composes them, with `oracle`, `log` and `deploy` from their own modules. The
+conventions every command keeps (-o/--out, defaults in --help, exit statuses) are in
+minority/cliargs.py.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +16,14 @@ import threading
 import time
 from pathlib import Path
 
+from minority.cliargs import BAD_INPUT, FAILED, HelpFormatter, add_out, command, fail, missing, parent_made
+
 DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not imported here)
+# packages whose numba kernels are cached on disk (cache=True): their stale caches are dropped
+# before a command that runs kernels (protocol.jitcache), never at import time
+NUMBA_PACKAGES = ("minority.sim", "minority.gns", "minority.render_server")
+NO_MPI = ("no MPI library: install the mpich wheel (pip install 'minority[mpi]', what `make` "
+          "does) or mpi4py built against your system's MPI (README.md, 'A cluster's own MPI')")
 
 
 def _add_network(p: argparse.ArgumentParser) -> None:
@@ -47,45 +60,33 @@ def _open_peer(opts, role, command: str, wait_s: float):
         return None
 
 
-def _cmd_record(args: argparse.Namespace) -> int:
-    from mcap.writer import CompressionType
+# --- serve ------------------------------------------------------------------------------
 
-    from minority.protocol.log import Recorder, free_log_path
-    from minority.protocol.session import Role, options_from_args
-
-    args.output = free_log_path(args.output)  # never overwrite a log
-    opts = options_from_args(args)
-    opts.connect_timeout_s = args.wait
-    role = Role.SERVER if args.listen else Role.CLIENT  # --listen: sims may connect to us
-    session = _open_peer(opts, role, "record", args.wait)
-    if session is None:
-        return 1
-    try:
-        recorder = Recorder(session, args.output, run=args.run,
-                            compression=CompressionType[args.compression.upper()],
-                            flush_interval_s=args.flush_interval)
-    except OSError as exc:
-        print(f"minority record: error: cannot write {args.output}: {exc}", file=sys.stderr)
-        session.close()
-        return 1
-    stop = _stop_on_signals()
-    print(f"recording minority/{args.run}/** to {args.output} (Ctrl-C to stop)", file=sys.stderr)
-    start = time.monotonic()
-    try:
-        while not stop.wait(1.0):
-            elapsed = time.monotonic() - start
-            if not args.quiet:
-                print(f"\r{elapsed:7.0f} s  {recorder.written} messages written  "
-                      f"{recorder.dropped} dropped", end="", file=sys.stderr)
-            if args.duration and elapsed >= args.duration:
-                break
-    finally:
-        recorder.close()
-        session.close()
-    print(f"\n{recorder.written} messages written to {args.output} "
-          f"({recorder.writer.rejected} rejected as malformed, {recorder.dropped} dropped)",
-          file=sys.stderr)
-    return 0
+def _serve_parser(sub) -> None:
+    p = command(sub, "serve", help="run the render server daemon",
+                description="Run the render server until SIGINT/SIGTERM: serve each spec on "
+                            "minority/{run}/spec, receive chunks, assemble steps, ray-trace "
+                            "the scheduled views to DIR/{run}/{view}/{step:06d}.png, publish "
+                            "frames and timing, record every message of the run to MCAP. A "
+                            "run id may run again (a new sim after the last one ended, or a "
+                            "server restart): each run gets the first free name of {run}, "
+                            "{run}.1, ... for its frames and log, so nothing is overwritten. "
+                            "Exit status 2 on a bad spec, 1 when the server cannot start.")
+    p.add_argument("--spec", type=Path, required=True, action="append",
+                   help="oracle spec JSON file; repeat it to serve several runs at once")
+    add_out(p, "frame directory", default=Path("frames"), metavar="DIR")
+    p.add_argument("--record", type=Path, metavar="FILE.mcap",
+                   help="MCAP log of the run (one spec only; default: DIR/{run}.mcap); a "
+                        "later run or an existing file gets FILE.1.mcap, ...")
+    p.add_argument("--no-record", action="store_true", help="do not write an MCAP log")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="render a step with what arrived S seconds after its first chunk")
+    p.add_argument("--shadows", action="store_true", help="cast shadow rays (slower)")
+    p.add_argument("--exit-when-done", action="store_true",
+                   help="exit once every rank of each run is done and its last step rendered "
+                        "(for batch jobs and the demo; without it: serve until stopped)")
+    _add_network(p)
+    p.set_defaults(func=_cmd_serve, kernels=True)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -98,18 +99,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         specs = [Spec.load(path) for path in args.spec]
-    except (SpecError, OSError) as exc:  # bad input: exit 2
-        print(f"minority serve: error: {exc}", file=sys.stderr)
-        return 2
+    except (SpecError, OSError) as exc:
+        return fail("serve", exc, BAD_INPUT)
     runs = [s.run for s in specs]
     if len(set(runs)) < len(runs):
-        print(f"minority serve: error: two specs name the same run ({', '.join(runs)}); a "
-              "server serves each run id once", file=sys.stderr)
-        return 2
+        return fail("serve", f"two specs name the same run ({', '.join(runs)}); a server "
+                             "serves each run id once", BAD_INPUT)
     if args.record and len(specs) > 1:
-        print("minority serve: error: --record names one log: with several specs each run "
-              "logs to DIR/{run}.mcap", file=sys.stderr)
-        return 2
+        return fail("serve", "--record names one log: with several specs each run logs to "
+                             "DIR/{run}.mcap", BAD_INPUT)
     opts = options_from_args(args)
     # the server's own large puts are frames: a pool for the largest raw image
     opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for s in specs
@@ -118,11 +116,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         session = open_session(opts, Role.SERVER)
     except (zenoh.ZError, OSError) as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
-        return 1
+        return FAILED
     servers = []
     try:
+        args.out.mkdir(parents=True, exist_ok=True)
         for spec in specs:
             record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
+            if record is not None:
+                parent_made(record)
             servers.append(RenderServer(session, ServerOptions(spec, args.out, record,
                                                                args.timeout,
                                                                shadows=args.shadows)))
@@ -135,7 +136,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         for s in servers:
             s.close()
         session.close()
-        return 1
+        return FAILED
     stop = _stop_on_signals()
     try:
         while not stop.wait(0.2):
@@ -151,42 +152,107 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- sim --------------------------------------------------------------------------------
+
+def _sim_parser(sub) -> None:
+    p = command(sub, "sim", help="run the MPM simulation of a scene",
+                description="Run the 3D MLS-MPM simulation (Drucker-Prager sand) of a scene "
+                            "and write its frames to HDF5 (positions m, velocities m/s, "
+                            "displacements m, float32). Exit status 2 on a bad scene, spec or "
+                            "argument, 1 when the run fails.")
+    p.add_argument("scene", help="scene TOML file (keys and units in sim/README.md), or the "
+                                 "name of a shipped scene: tiny, cylinder_small, column_13k, "
+                                 "column_100k, column_1m")
+    add_out(p, "output HDF5 file (default: SCENE_NAME.h5)", metavar="FILE.h5")
+    p.add_argument("--dt", type=float, metavar="S",
+                   help="fixed time step in s; refused if above the CFL bound (default: the "
+                        "CFL step, recomputed every step)")
+    p.add_argument("--threads", type=int, metavar="N",
+                   help="numba threads per rank (default: the node's cores / its ranks)")
+    p.add_argument("--ranks", type=int, metavar="N",
+                   help="MPI ranks: slabs of the grid along x (default: 1, or what the MPI "
+                        "launcher started); N > 1 re-runs this command under mpiexec -n N")
+    p.add_argument("--rebalance-every", type=int, default=DEFAULT_REBALANCE_EVERY, metavar="K",
+                   help="move the slab boundaries to balance the particle count every K steps "
+                        "(0: never)")
+    p.add_argument("--steps", type=int, metavar="N",
+                   help="stop after N steps (default: at the scene's duration)")
+    p.add_argument("--run", metavar="ID",
+                   help="run id of the keys minority/ID/...: the run of the server's spec "
+                        "(default: the scene's name)")
+    p.add_argument("--spec", type=Path, metavar="FILE",
+                   help="spec to follow when no server serves one (its run must be the run id)")
+    p.add_argument("--record", type=Path, metavar="FILE.mcap",
+                   help="also write what the ranks publish to MCAP (rank 0: FILE.mcap, rank "
+                        "r > 0: FILE.rank{r}.mcap)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="keep trying to reach the server for S seconds at start (0: one try; "
+                        "without a server the sim runs on and says so)")
+    p.add_argument("--no-publish", action="store_true",
+                   help="no network: do not look for a server, publish or record")
+    p.add_argument("--stats-every-s", type=float, default=0.005, metavar="S",
+                   help="each rank publishes flow statistics (speed histograms, kinetic energy, "
+                        "displacement; for the oracle's score) every S s of simulated time "
+                        "(0: none)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    _add_network(p)
+    p.set_defaults(func=_cmd_sim, kernels=True)
+
+
+def _mpi():
+    """mpi4py's MPI module, or None after saying which MPI to install."""
+    try:
+        from mpi4py import MPI
+    except (ImportError, RuntimeError) as exc:  # mpi4py finds no libmpi: RuntimeError
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        fail("sim", f"{NO_MPI} (mpi4py: {reason})")
+        return None
+    return MPI
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from minority.protocol.errors import SpecError
+    from minority.protocol.spec import Spec
     from minority.sim.driver import SimulationError
     from minority.sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
     from minority.sim.scene import SceneError, scene_path
 
     if args.ranks is not None and args.ranks < 1:
-        print("minority sim: error: --ranks must be at least 1", file=sys.stderr)
-        return 2
+        return fail("sim", "--ranks must be at least 1", BAD_INPUT)
     if not under_launcher() and (args.ranks or 1) > 1:
         return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
     try:
         scene = scene_path(args.scene)
+        if args.spec is not None:
+            Spec.load(args.spec)  # a bad spec is bad input, said before any rank starts
+    except (SceneError, SpecError, OSError) as exc:
+        return fail("sim", exc, BAD_INPUT)
+    MPI = _mpi()
+    if MPI is None:
+        return FAILED
+    if args.ranks is not None and args.ranks != MPI.COMM_WORLD.Get_size():
+        return fail("sim", f"--ranks {args.ranks}, but the launcher started "
+                           f"{MPI.COMM_WORLD.Get_size()} processes", BAD_INPUT)
+    try:
         publish = None
         if not args.no_publish:
             from minority.protocol.session import options_from_args
             from minority.sim.publish import PublishOptions
 
+            record = parent_made(args.record) if args.record else None
             publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
-                                     record=args.record, stats_every_s=args.stats_every_s)
-        config = RankRunConfig(scene_path=scene, out=args.out or Path(f"{scene.stem}.h5"),
+                                     record=record, stats_every_s=args.stats_every_s)
+        out = parent_made(args.out or Path(f"{scene.stem}.h5"))
+        config = RankRunConfig(scene_path=scene, out=out,
                                dt=args.dt, threads=args.threads,
                                rebalance_every=args.rebalance_every, progress=not args.quiet,
                                publish=publish, run=args.run, wait_s=args.wait,
                                max_steps=args.steps)
-        from mpi4py import MPI
-
-        if args.ranks is not None and args.ranks != MPI.COMM_WORLD.Get_size():
-            raise ValueError(f"--ranks {args.ranks}, but the launcher started "
-                             f"{MPI.COMM_WORLD.Get_size()} processes")
         summary = run_ranks(config)
-    except SceneError as exc:  # bad input: exit 2
-        print(f"minority sim: error: {exc}", file=sys.stderr)
-        return 2
+    except SceneError as exc:
+        return fail("sim", exc, BAD_INPUT)
     except (SimulationError, ValueError, OSError) as exc:
-        print(f"minority sim: error: {exc}", file=sys.stderr)
-        return 1
+        return fail("sim", exc)
     if MPI.COMM_WORLD.Get_rank() == 0:
         slabs = (f", {summary.rebalances} rebalances, {summary.migrated} particles migrated"
                  if summary.ranks > 1 else "")
@@ -200,18 +266,53 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- replay -----------------------------------------------------------------------------
+
+def _replay_parser(sub) -> None:
+    p = command(sub, "replay", help="re-render, export or re-publish a recorded MCAP log",
+                description="Re-render the chunks of a recorded run with the log's own spec "
+                            "(its last) or a new one into DIR/{view}/{step:06d}.png (the "
+                            "daemon's renderer: the log's spec gives the same pixels); views "
+                            "needing data the log does not hold (a field, particles culled "
+                            "away, steps never recorded) are reported, not rendered. --vtk "
+                            "exports the steps for ParaView; --publish re-sends the chunks to "
+                            "a running `minority serve`. Exit status 2 on bad input, 1 when a "
+                            "file or the network fails.")
+    p.add_argument("log", type=Path, metavar="RUN.mcap",
+                   help="MCAP file written by `minority serve` or `minority record`")
+    p.add_argument("--spec", type=Path, metavar="FILE",
+                   help="spec JSON to render with (default: the last spec in the log)")
+    add_out(p, "frame directory (default: RUN-replay beside the log); frames are rendered "
+               "when --out is given or neither --vtk nor --publish is", metavar="DIR")
+    p.add_argument("--vtk", type=Path, metavar="DIR",
+                   help="write every recorded step as DIR/{run}_{step:06d}.vtp (all recorded "
+                        "fields as point data) plus DIR/{run}.pvd with the simulated times")
+    p.add_argument("--publish", action="store_true",
+                   help="re-publish the recorded chunks and spec to a running render server "
+                        "instead of rendering")
+    p.add_argument("--rate", type=float, default=1.0, metavar="R",
+                   help="with --publish: pace of the recorded log times (2: twice as fast, "
+                        "0: as fast as possible)")
+    p.add_argument("--run", metavar="ID",
+                   help="the run to replay when the log holds several (default: the run of "
+                        "its last spec)")
+    p.add_argument("--shadows", action="store_true",
+                   help="cast shadow rays (as `minority serve --shadows` did)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="with --publish: wait S seconds for the server")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    _add_network(p)
+    p.set_defaults(func=_cmd_replay, kernels=True)
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from minority.protocol.errors import ProtocolError, SpecError
     from minority.replay import ReplayError, replay
 
-    def fail(exc: Exception, status: int) -> int:
-        print(f"minority replay: error: {exc}", file=sys.stderr)
-        return status
-
     if args.rate < 0:
-        return fail(ValueError("--rate must be 0 (as fast as possible) or positive"), 2)
+        return fail("replay", "--rate must be 0 (as fast as possible) or positive", BAD_INPUT)
     if not args.log.is_file():
-        return fail(FileNotFoundError(f"{args.log}: no such file"), 2)
+        return fail("replay", f"{args.log}: no such file", BAD_INPUT)
     if args.publish:
         if args.spec or args.out or args.vtk:
             print("minority replay: --publish re-sends the chunks only; the server renders them "
@@ -227,15 +328,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         spec = Spec.load(args.spec) if args.spec else None
         summary = replay(args.log, spec, out, args.vtk, args.run, args.shadows, progress)
     except (ReplayError, SpecError, ProtocolError) as exc:
-        return fail(exc, 2)
+        return fail("replay", exc, BAD_INPUT)
     except OSError as exc:
-        return fail(exc, 1)
+        return fail("replay", exc)
     print(summary.text())
     return 0
 
 
 def _replay_publish(args: argparse.Namespace) -> int:
-
     from minority.protocol.errors import ProtocolError
     from minority.protocol.session import Role, options_from_args
     from minority.replay import NoServer, ReplayError, publish
@@ -244,13 +344,12 @@ def _replay_publish(args: argparse.Namespace) -> int:
     opts.connect_timeout_s = args.wait
     session = _open_peer(opts, Role.SERVER if args.listen else Role.CLIENT, "replay", args.wait)
     if session is None:
-        return 1
+        return FAILED
     stop = _stop_on_signals()
     try:
         s = publish(args.log, session, args.rate, args.run, args.wait, stop)
     except (ReplayError, ProtocolError) as exc:
-        print(f"minority replay: error: {exc}", file=sys.stderr)
-        return 1 if isinstance(exc, NoServer) else 2
+        return fail("replay", exc, FAILED if isinstance(exc, NoServer) else BAD_INPUT)
     finally:
         session.close()
     print(f"run {s.run}: re-published {s.chunks} chunks and {s.specs} specs "
@@ -258,19 +357,58 @@ def _replay_publish(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- report, report score ---------------------------------------------------------------
+
+def _report_parser(sub) -> None:
+    # `minority report RUN.mcap` reports a log; `minority report score SPEC RUN.mcap` (the
+    # oracle score) is its sibling with its own parser (`score_parser`), chosen in `main`
+    p = command(sub, "report", help="timing tables and oracle scores from a log",
+                description="Turn the MCAP log of a run (written by `minority serve`) into "
+                            "markdown on stdout: mean receive / setup / render time per in "
+                            "situ step and per view (ms, and % of the total), frames per view, "
+                            "bytes received vs a full dump (MB = 1e6 bytes), skipped and "
+                            "incomplete steps; and two PNG plots, LOG_STEM.timing.png and "
+                            "LOG_STEM.bytes.png. Exit status 2 on bad input (no such file, "
+                            "not MCAP, no timing records), 1 when a file cannot be read or "
+                            "written. `minority report score SPEC.json RUN.mcap [-o DIR]`: the "
+                            "oracle's predictions against the run (see `minority report score "
+                            "--help`).")
+    p.add_argument("log", metavar="RUN.mcap", help="MCAP log of the run")
+    add_out(p, "directory for the PNG plots (default: the log's directory)", metavar="DIR")
+    p.add_argument("--no-plots", action="store_true", help="write no PNG, only the markdown")
+    p.add_argument("--run", metavar="ID",
+                   help="the run to report when the log holds timing of several runs "
+                        "(default: the only one)")
+    p.set_defaults(func=_cmd_report)
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from minority.report import ReportError, report
 
     try:
         text = report(Path(args.log), args.out, not args.no_plots, args.run)
-    except ReportError as exc:  # bad input
-        print(f"minority report: error: {exc}", file=sys.stderr)
-        return 2
+    except ReportError as exc:
+        return fail("report", exc, BAD_INPUT)
     except OSError as exc:
-        print(f"minority report: error: {exc}", file=sys.stderr)
-        return 1
+        return fail("report", exc)
     print(text, end="")
     return 0
+
+
+def score_parser() -> argparse.ArgumentParser:
+    """`minority report score` (a word after `report`, so its own parser: argparse cannot
+    mix a subcommand with the report's positional log)."""
+    p = argparse.ArgumentParser(
+        prog="minority report score", formatter_class=HelpFormatter,
+        description="Score the oracle's predictions (events, displacement, regions, frames in "
+                    "the critical windows, bytes) against the run's in situ statistics "
+                    "(Stats messages of its log): markdown on stdout, and score.json with "
+                    "--out. Exit status 2 on bad input, 1 when a file cannot be written.")
+    p.add_argument("spec", metavar="SPEC.json", help="the oracle spec")
+    p.add_argument("log", metavar="RUN.mcap", help="the MCAP log of the run it predicted")
+    add_out(p, "also write DIR/score.json and DIR/score.md", metavar="DIR")
+    p.set_defaults(func=_cmd_score)
+    return p
 
 
 def _cmd_score(args: argparse.Namespace) -> int:
@@ -281,232 +419,148 @@ def _cmd_score(args: argparse.Namespace) -> int:
     from minority.score import ScoreError, load_run, markdown, score
 
     spec_path, log_path = Path(args.spec), Path(args.log)
+    if (status := missing("report score", spec_path, log_path)) is not None:
+        return status
     try:
         spec = Spec.load(spec_path)
-        if not log_path.is_file():
-            raise ScoreError(f"{log_path}: no such file")
         result = score(spec, load_run(log_path, spec.run))
     except (ScoreError, SpecError, ProtocolError) as exc:
-        print(f"minority report score: error: {exc}", file=sys.stderr)
-        return 2
+        return fail("report score", exc, BAD_INPUT)
     except OSError as exc:
-        print(f"minority report score: error: {exc}", file=sys.stderr)
-        return 1
+        return fail("report score", exc)
     text = markdown(result)
     if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "score.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
-        (args.out / "score.md").write_text(text)
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / "score.json").write_text(json.dumps(result, indent=1, default=float)
+                                                 + "\n")
+            (args.out / "score.md").write_text(text)
+        except OSError as exc:
+            return fail("report score", exc)
     print(text, end="")
     return 0
+
+
+# --- record -----------------------------------------------------------------------------
+
+def _record_parser(sub) -> None:
+    p = command(sub, "record", help="record every minority message to MCAP",
+                description="Subscribe to minority/{run}/** and write every message to an MCAP "
+                            "file (chunks byte-for-byte, frames as images, timing as JSON) "
+                            "until Ctrl-C, SIGTERM or --duration. An existing file is never "
+                            "overwritten: FILE.1.mcap, ... is written instead. Exit status 1 "
+                            "when no peer is reached or the file cannot be written.")
+    add_out(p, "MCAP file to write", default=Path("minority.mcap"), metavar="FILE.mcap")
+    p.add_argument("--run", default="*", help="record one run id only (*: every run)")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S",
+                   help="stop after S seconds (0: run until stopped)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="keep trying to reach the server for S seconds at start")
+    p.add_argument("--compression", choices=["none", "lz4", "zstd"], default="none",
+                   help="MCAP chunk compression (particle floats compress poorly)")
+    p.add_argument("--flush-interval", type=float, default=0.5, metavar="S",
+                   help="close an MCAP chunk at least every S seconds, so a killed recorder "
+                        "loses at most that much")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    _add_network(p)
+    p.set_defaults(func=_cmd_record)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from mcap.writer import CompressionType
+
+    from minority.protocol.log import Recorder, free_log_path
+    from minority.protocol.session import Role, options_from_args
+
+    opts = options_from_args(args)
+    opts.connect_timeout_s = args.wait
+    role = Role.SERVER if args.listen else Role.CLIENT  # --listen: sims may connect to us
+    session = _open_peer(opts, role, "record", args.wait)
+    if session is None:
+        return FAILED
+    try:
+        out = free_log_path(parent_made(args.out))  # never overwrite a log
+        recorder = Recorder(session, out, run=args.run,
+                            compression=CompressionType[args.compression.upper()],
+                            flush_interval_s=args.flush_interval)
+    except OSError as exc:
+        session.close()
+        return fail("record", f"cannot write {args.out}: {exc}")
+    stop = _stop_on_signals()
+    print(f"recording minority/{args.run}/** to {out} (Ctrl-C to stop)", file=sys.stderr)
+    start = time.monotonic()
+    try:
+        while not stop.wait(1.0):
+            elapsed = time.monotonic() - start
+            if not args.quiet:
+                print(f"\r{elapsed:7.0f} s  {recorder.written} messages written  "
+                      f"{recorder.dropped} dropped", end="", file=sys.stderr)
+            if args.duration and elapsed >= args.duration:
+                break
+    finally:
+        recorder.close()
+        session.close()
+    print(f"\n{recorder.written} messages written to {out} "
+          f"({recorder.writer.rejected} rejected as malformed, {recorder.dropped} dropped)",
+          file=sys.stderr)
+    return 0
+
+
+# --- demo -------------------------------------------------------------------------------
+
+def _demo_parser(sub) -> None:
+    from dataclasses import fields
+
+    from minority.demo import DemoOptions
+
+    d = argparse.Namespace(**{f.name: f.default for f in fields(DemoOptions)})  # no checks yet
+    p = command(sub, "demo", help="the whole pipeline on one machine, embedded defaults",
+                description="Oracle rollout, spec, render server, 2-rank sim, frames, log, "
+                            "report and score, on one machine. Exit status 2 on a bad "
+                            "argument, 1 when a stage fails.")
+    add_out(p, "where everything goes", default=d.out, metavar="DIR")
+    p.add_argument("--ranks", type=int, default=d.ranks, help="MPI ranks of the sim")
+    p.add_argument("--duration", type=float, default=d.duration_s, metavar="S",
+                   help="simulated time, s (the runout ends near 0.62 s)")
+    p.add_argument("--cell-size", type=float, default=d.cell_size_m, metavar="M",
+                   help="grid cell, m: 0.016 gives 12,960 particles, 0.032 gives 1,800")
+    p.add_argument("--frames", type=int, default=d.frames, help="frame budget, all views")
+    p.add_argument("--threads", type=int, default=d.threads, help="threads per process")
+    p.set_defaults(func=_cmd_demo, kernels=True)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from minority.demo import DemoOptions, main
 
     try:
-        return main(DemoOptions(out=args.out, ranks=args.ranks, duration_s=args.duration,
-                                cell_size_m=args.cell_size, frames=args.frames,
-                                threads=args.threads))
+        options = DemoOptions(out=args.out, ranks=args.ranks, duration_s=args.duration,
+                              cell_size_m=args.cell_size, frames=args.frames,
+                              threads=args.threads)
+    except ValueError as exc:
+        return fail("demo", exc, BAD_INPUT)
+    try:
+        return main(options)
     except (RuntimeError, ValueError, OSError, subprocess.TimeoutExpired) as exc:
-        print(f"minority demo: error: {exc}", file=sys.stderr)
-        return 1
+        return fail("demo", exc)
 
+
+# --- the command ------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
+    from minority import deploy_cli, log_cli, oracle_cli
+
     parser = argparse.ArgumentParser(
-        prog="minority",
+        prog="minority", formatter_class=HelpFormatter,
         description="In situ visualization of particle simulations, steered by a graph "
-                    "network oracle. Units: metres, seconds, kilograms, pascals, degrees.")
+                    "network oracle. Units: metres, seconds, kilograms, pascals, degrees. "
+                    "Exit status 2 for bad usage or input, 1 for a failure at run time.")
     parser.add_argument("--version", action="version", version=f"minority {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    p = sub.add_parser("serve", help="run the render server daemon",
-                       description="Run the render server until SIGINT/SIGTERM: serve each "
-                                   "spec on minority/{run}/spec, receive chunks, assemble steps, "
-                                   "ray-trace the scheduled views to DIR/{run}/{view}/"
-                                   "{step:06d}.png, publish frames and timing, record every "
-                                   "message of the run to MCAP. A run id may run again (a new "
-                                   "sim after the last one ended, or a server restart): each "
-                                   "run gets the first free name of {run}, {run}.1, ... for "
-                                   "its frames and log, so nothing is overwritten.")
-    p.add_argument("--spec", type=Path, required=True, action="append",
-                   help="oracle spec JSON file; repeat it to serve several runs at once")
-    p.add_argument("--out", type=Path, default=Path("frames"), metavar="DIR",
-                   help="frame directory (default: frames)")
-    p.add_argument("--record", type=Path, metavar="FILE.mcap",
-                   help="MCAP log of the run (one spec only; default: DIR/{run}.mcap); a "
-                        "later run or an existing file gets FILE.1.mcap, ...")
-    p.add_argument("--no-record", action="store_true", help="do not write an MCAP log")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
-                   help="render a step with what arrived S seconds after its first chunk "
-                        "(default 5)")
-    p.add_argument("--shadows", action="store_true", help="cast shadow rays (slower)")
-    p.add_argument("--exit-when-done", action="store_true",
-                   help="exit once every rank of each run is done and its last step rendered "
-                        "(for batch jobs and the demo; default: serve until stopped)")
-    _add_network(p)
-    p.set_defaults(func=_cmd_serve)
-
-    p = sub.add_parser("sim", help="run the MPM simulation of a scene",
-                       description="Run the 3D MLS-MPM simulation (Drucker-Prager sand) of a "
-                                   "scene and write its frames to HDF5 (positions m, "
-                                   "velocities m/s, displacements m, float32).")
-    p.add_argument("scene", help="scene TOML file (keys and units in sim/README.md), or the "
-                                 "name of a shipped scene: tiny, cylinder_small, column_13k, "
-                                 "column_100k, column_1m")
-    p.add_argument("--out", type=Path, help="output HDF5 file (default: SCENE_NAME.h5)")
-    p.add_argument("--dt", type=float, metavar="S",
-                   help="fixed time step in s; refused if above the CFL bound (default: the "
-                        "CFL step, recomputed every step)")
-    p.add_argument("--threads", type=int, metavar="N",
-                   help="numba threads per rank (default: the node's cores / its ranks)")
-    p.add_argument("--ranks", type=int, metavar="N",
-                   help="MPI ranks: slabs of the grid along x (default 1, or what the MPI "
-                        "launcher started); N > 1 re-runs this command under mpiexec -n N")
-    p.add_argument("--rebalance-every", type=int, default=DEFAULT_REBALANCE_EVERY, metavar="K",
-                   help="move the slab boundaries to balance the particle count every K steps "
-                        f"(0: never; default {DEFAULT_REBALANCE_EVERY})")
-    p.add_argument("--steps", type=int, metavar="N", help="stop after N steps")
-    p.add_argument("--run", metavar="ID",
-                   help="run id of the keys minority/ID/...: the run of the server's spec "
-                        "(default: the scene name)")
-    p.add_argument("--spec", type=Path, metavar="FILE",
-                   help="spec to follow when no server serves one (its run must be the run id)")
-    p.add_argument("--record", type=Path, metavar="FILE.mcap",
-                   help="also write what the ranks publish to MCAP (rank 0: FILE.mcap, rank "
-                        "r > 0: FILE.rank{r}.mcap)")
-    p.add_argument("--wait", type=float, default=0.0, metavar="S",
-                   help="keep trying to reach the server for S seconds at start (default 0: "
-                        "one try; without a server the sim runs on and says so)")
-    p.add_argument("--no-publish", action="store_true",
-                   help="no network: do not look for a server, publish or record")
-    p.add_argument("--stats-every-s", type=float, default=0.005, metavar="S",
-                   help="each rank publishes flow statistics (speed histograms, kinetic energy, "
-                        "displacement; for the oracle's score) every S s of simulated time "
-                        "(0: none; default 0.005)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    _add_network(p)
-    p.set_defaults(func=_cmd_sim)
-
-    from minority.oracle_cli import add_oracle_parser
-    add_oracle_parser(sub)
-
-    p = sub.add_parser("replay", help="re-render, export or re-publish a recorded MCAP log",
-                       description="Re-render the chunks of a recorded run with the log's own "
-                                   "spec (its last) or a new one into DIR/{view}/{step:06d}.png "
-                                   "(the daemon's renderer: the log's spec gives the same "
-                                   "pixels); views needing data the log does not hold (a "
-                                   "field, particles culled away, steps never recorded) are "
-                                   "reported, not rendered. --vtk exports the steps for "
-                                   "ParaView; --publish re-sends the chunks to a running "
-                                   "`minority serve`. Exit status 2 on bad input, 1 when a "
-                                   "file or the network fails.")
-    p.add_argument("log", type=Path, metavar="RUN.mcap",
-                   help="MCAP file written by `minority serve` or `minority record`")
-    p.add_argument("--spec", type=Path, metavar="FILE",
-                   help="spec JSON to render with (default: the last spec in the log)")
-    p.add_argument("--out", type=Path, metavar="DIR",
-                   help="frame directory (default: RUN-replay beside the log); frames are "
-                        "rendered when --out is given or neither --vtk nor --publish is")
-    p.add_argument("--vtk", type=Path, metavar="DIR",
-                   help="write every recorded step as DIR/{run}_{step:06d}.vtp (all recorded "
-                        "fields as point data) plus DIR/{run}.pvd with the simulated times")
-    p.add_argument("--publish", action="store_true",
-                   help="re-publish the recorded chunks and spec to a running render server "
-                        "instead of rendering")
-    p.add_argument("--rate", type=float, default=1.0, metavar="R",
-                   help="with --publish: pace of the recorded log times (2: twice as fast, "
-                        "0: as fast as possible; default 1)")
-    p.add_argument("--run", metavar="ID",
-                   help="the run to replay when the log holds several (default: the run of "
-                        "its last spec)")
-    p.add_argument("--shadows", action="store_true",
-                   help="cast shadow rays (as `minority serve --shadows` did)")
-    p.add_argument("--wait", type=float, default=10.0, metavar="S",
-                   help="with --publish: wait S seconds for the server (default 10)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    _add_network(p)
-    p.set_defaults(func=_cmd_replay)
-
-    # `minority report RUN.mcap` reports a log; `minority report score SPEC RUN.mcap` (the
-    # oracle score) is its sibling: a first positional equal to "score" selects it (a log
-    # file named "score" is passed as ./score) and its operands land in `operands`.
-    p = sub.add_parser("report", help="timing tables and oracle scores from a log",
-                       description="Turn the MCAP log of a run (written by `minority serve`) "
-                                   "into markdown on stdout: mean receive / setup / render "
-                                   "time per in situ step and per view (ms, and % of the "
-                                   "total), frames per view, bytes received vs a full dump "
-                                   "(MB = 1e6 bytes), skipped and incomplete steps; and two PNG "
-                                   "plots, LOG_STEM.timing.png and LOG_STEM.bytes.png. Exit "
-                                   "status 2 on bad input (no such file, not MCAP, no timing "
-                                   "records), 1 when a file cannot be read or written. "
-                                   "`minority report score SPEC.json RUN.mcap [--out DIR]`: the "
-                                   "oracle's predictions against the run (see `minority report "
-                                   "score --help`).")
-    p.add_argument("log", metavar="RUN.mcap", help="MCAP log of the run")
-    p.add_argument("--out", type=Path, metavar="DIR",
-                   help="directory for the PNG plots (default: the log's directory)")
-    p.add_argument("--no-plots", action="store_true", help="write no PNG, only the markdown")
-    p.add_argument("--run", metavar="ID",
-                   help="the run to report when the log holds timing of several runs")
-    p.set_defaults(func=_cmd_report)
-
-    p = sub.add_parser("record", help="record every minority message to MCAP",
-                       description="Subscribe to minority/{run}/** and write every message to an "
-                                   "MCAP file (chunks byte-for-byte, frames as images, timing "
-                                   "as JSON) until Ctrl-C, SIGTERM or --duration.")
-    p.add_argument("-o", "--output", type=Path, default=Path("minority.mcap"),
-                   help="MCAP file to write (default: minority.mcap)")
-    p.add_argument("--run", default="*", help="record one run id only (default: every run)")
-    p.add_argument("--duration", type=float, default=0.0, metavar="S",
-                   help="stop after S seconds (default: run until stopped)")
-    p.add_argument("--wait", type=float, default=10.0, metavar="S",
-                   help="keep trying to reach the server for S seconds at start (default 10)")
-    p.add_argument("--compression", choices=["none", "lz4", "zstd"], default="none",
-                   help="MCAP chunk compression (default none: particle floats compress poorly)")
-    p.add_argument("--flush-interval", type=float, default=0.5, metavar="S",
-                   help="close an MCAP chunk at least every S seconds, so a killed recorder "
-                        "loses at most that much (default 0.5)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
-    _add_network(p)
-    p.set_defaults(func=_cmd_record)
-
-    from minority import deploy_cli, log_cli
-
-    log_cli.add_parser(sub)
-    deploy_cli.add_parser(sub)
-
-    p = sub.add_parser("demo", help="the whole pipeline on one machine, embedded defaults",
-                       description="Oracle rollout, spec, render server, 2-rank sim, frames, "
-                                   "log, report and score, on one machine.")
-    p.add_argument("--out", type=Path, default=Path("demo"), metavar="DIR",
-                   help="where everything goes (default: demo/)")
-    p.add_argument("--ranks", type=int, default=2, help="MPI ranks of the sim (default 2)")
-    p.add_argument("--duration", type=float, default=0.7, metavar="S",
-                   help="simulated time, s (default 0.7: the runout ends near 0.62 s)")
-    p.add_argument("--cell-size", type=float, default=0.016, metavar="M",
-                   help="grid cell, m: 0.016 gives 12,960 particles (default), 0.032 gives 1,800")
-    p.add_argument("--frames", type=int, default=90, help="frame budget, all views (default 90)")
-    p.add_argument("--threads", type=int, default=1, help="threads per process (default 1)")
-    p.set_defaults(func=_cmd_demo)
+    for add in (_serve_parser, _sim_parser, oracle_cli.add_parser, _replay_parser,
+                _report_parser, _record_parser, log_cli.add_parser, deploy_cli.add_parser,
+                _demo_parser):
+        add(sub)
     return parser
-
-
-def score_parser() -> argparse.ArgumentParser:
-    """`minority report score` (a word after `report`, so its own parser: argparse cannot
-    mix a subcommand with the report's positional log)."""
-    p = argparse.ArgumentParser(
-        prog="minority report score",
-        description="Score the oracle's predictions (events, displacement, regions, frames in "
-                    "the critical windows, bytes) against the run's in situ statistics "
-                    "(Stats messages of its log): markdown on stdout, and score.json with "
-                    "--out. Exit status 2 on bad input, 1 when a file cannot be written.")
-    p.add_argument("spec", metavar="SPEC.json", help="the oracle spec")
-    p.add_argument("log", metavar="RUN.mcap", help="the MCAP log of the run it predicted")
-    p.add_argument("--out", type=Path, metavar="DIR", help="also write DIR/score.json")
-    p.set_defaults(func=_cmd_score)
-    return p
 
 
 def _own_parsers(parser: argparse.ArgumentParser) -> None:
@@ -528,14 +582,29 @@ def version() -> str:
         return "unknown (not installed)"
 
 
+def drop_stale_numba_caches() -> None:
+    """protocol.jitcache's housekeeping for every package with cached kernels (found without
+    importing them)."""
+    from importlib.util import find_spec
+
+    from minority.protocol.jitcache import drop_stale_numba_cache
+
+    for name in NUMBA_PACKAGES:
+        for folder in find_spec(name).submodule_search_locations:
+            drop_stale_numba_cache(folder)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = score_parser() if argv[:2] == ["report", "score"] else build_parser()
+    score = argv[:2] == ["report", "score"]
+    parser = score_parser() if score else build_parser()
     _own_parsers(parser)
-    args, extra = parser.parse_known_args(argv[2:] if argv[:2] == ["report", "score"] else argv)
+    args, extra = parser.parse_known_args(argv[2:] if score else argv)
     if extra:  # said by the subcommand's parser, with its usage (not the top level's)
         args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.argv = argv  # `minority sim --ranks N` re-runs itself under mpiexec
+    if getattr(args, "kernels", False):
+        drop_stale_numba_caches()  # numba does not track cross-file changes
     return args.func(args)
 
 

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from minority.cliargs import add_out, command
+
 REPAIRED_SUFFIX = ".repaired.mcap"
 
 
@@ -60,7 +62,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_repair(args: argparse.Namespace) -> int:
     from minority.protocol.repair import LogState, repair
 
-    out = args.output or default_output(args.log)
+    out = args.out or default_output(args.log)
     if not _readable(args.log, "repair"):
         return 2
     if out.exists() and not args.force and not out.samefile(args.log):
@@ -83,7 +85,7 @@ def _cmd_repair(args: argparse.Namespace) -> int:
 
 def add_parser(sub) -> None:
     """Add `log` (with `check` and `repair`) to the subparsers `sub` of the minority command."""
-    p = sub.add_parser("log", help="check or repair MCAP logs (e.g. of a killed server)",
+    p = command(sub, "log", help="check or repair MCAP logs (e.g. of a killed server)",
                        description="Tools for the MCAP logs written by `minority serve`, "
                                    "`minority record` and `minority sim --record`. A log whose "
                                    "writer was killed has no footer: Foxglove, the `mcap` CLI "
@@ -91,7 +93,7 @@ def add_parser(sub) -> None:
                                    "complete copy of its readable part.")
     lsub = p.add_subparsers(dest="log_command", required=True, metavar="ACTION")
 
-    q = lsub.add_parser("check", help="say whether a log is complete, truncated or damaged",
+    q = command(lsub, "check", help="say whether a log is complete, truncated or damaged",
                         description="Read a log front to back (chunk CRCs checked) and print "
                                     "one line: complete, truncated (its writer was killed: no "
                                     "footer) or damaged (an unreadable record inside it), with "
@@ -101,7 +103,7 @@ def add_parser(sub) -> None:
     q.add_argument("log", type=Path, metavar="IN.mcap", help="MCAP log to check")
     q.set_defaults(func=_cmd_check)
 
-    q = lsub.add_parser("repair", help="write a complete copy of a cut-short or damaged log",
+    q = command(lsub, "repair", help="write a complete copy of a cut-short or damaged log",
                         description="Copy every record of IN.mcap up to its first unreadable "
                                     "one (a cut-short tail or a damaged chunk) into a new, "
                                     "indexed MCAP file that Foxglove, the `mcap` CLI and "
@@ -115,8 +117,7 @@ def add_parser(sub) -> None:
                                     "exists or is the input), 1 when the output cannot be "
                                     "written.")
     q.add_argument("log", type=Path, metavar="IN.mcap", help="MCAP log to repair")
-    q.add_argument("-o", "--output", type=Path, metavar="OUT.mcap",
-                   help=f"repaired copy (default: IN with suffix {REPAIRED_SUFFIX}); its "
-                        "directory is created")
+    add_out(q, f"repaired copy (default: IN with suffix {REPAIRED_SUFFIX}); its directory "
+               "is created", metavar="OUT.mcap")
     q.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     q.set_defaults(func=_cmd_repair)

@@ -1,4 +1,6 @@
-"""`minority oracle ...`: argument parsing of the GNS surrogate's subcommands."""
+"""`minority oracle STEP`: the GNS surrogate's steps, each a parser builder beside its handler
+(`_dataset_parser`, `_cmd_dataset`, ...), in pipeline order in `STEPS`. Conventions (-o/--out,
+defaults in --help, exit statuses) in minority/cliargs.py."""
 
 from __future__ import annotations
 
@@ -6,13 +8,67 @@ import argparse
 import sys
 from pathlib import Path
 
+from minority.cliargs import BAD_INPUT, FAILED, add_out, command, fail, missing, parent_made
+
 DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
-BAD_INPUT, FAILED = 2, 1  # exit statuses: a bad file or argument; a failure at run time
 
 
 def _fail(step: str, exc: Exception, status: int) -> int:
-    print(f"minority oracle {step}: error: {exc}", file=sys.stderr)
-    return status
+    return fail(f"oracle {step}", exc, status)
+
+
+def _load_for_cpu(args: argparse.Namespace):
+    """(model, checkpoint) of args.checkpoint, with the CPU allocator tuned and
+    args.threads torch threads (raises CheckpointError or OSError as load_checkpoint)."""
+    import torch
+
+    from minority.gns.runtime import tune_allocator
+    from minority.gns.train import load_checkpoint
+
+    tune_allocator()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    return load_checkpoint(args.checkpoint)
+
+
+def _checkpoint_on_scenes_args(q: argparse.ArgumentParser) -> None:
+    """CHECKPOINT DATASET [--split] [--scene ...] [--threads], as evaluate and diagnose take them."""
+    q.add_argument("checkpoint", type=Path, help="checkpoint from minority oracle train")
+    q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
+    q.add_argument("--split", default="test", choices=["train", "valid", "test"],
+                   help="the dataset's split to run on")
+    q.add_argument("--scene", action="append", help="only this scene (repeatable; default: all)")
+    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+
+
+# --- dataset ----------------------------------------------------------------------------
+
+def _existing(text: str) -> Path:
+    """An input file that must exist (a usage error, exit status 2, when it does not)."""
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return Path(text)
+
+
+def _dataset_parser(osub) -> None:
+    q = command(osub, "dataset", help="run the MPM sweep of a config and build the dataset",
+                description="Plan column-collapse scenes from the config's ranges (train / "
+                            "valid / test by scene, held-out aspect ratios and friction angles "
+                            "in test), run each with `minority sim` (finished runs are kept and "
+                            "skipped), pack the dataset.")
+    q.add_argument("--config", type=_existing, default=DEFAULT_SWEEP, help="sweep config TOML")
+    q.add_argument("--runs", type=Path, default=Path("data/sweep"), metavar="DIR",
+                   help="where the MPM runs go")
+    add_out(q, "dataset directory", default=Path("data/dataset"), metavar="DIR")
+    q.add_argument("--extra-train", type=int, metavar="N", help="N more train scenes than the "
+                   "config's split, drawn after its test scenes: every scene of the config "
+                   "and its run stay (default: the config's extra_train, else 0)")
+    q.add_argument("--extra-valid", type=int, metavar="N",
+                   help="the same for validation scenes (default: the config's extra_valid, "
+                        "else 0)")
+    q.add_argument("--jobs", type=int, default=1, help="sims run at once")
+    q.add_argument("--threads", type=int, default=1, help="numba threads per sim")
+    q.set_defaults(func=_cmd_dataset)
 
 
 def _cmd_dataset(args: argparse.Namespace) -> int:
@@ -38,13 +94,70 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- train ------------------------------------------------------------------------------
+
+def _train_parser(osub) -> None:
+    q = command(osub, "train", help="train the GNS on a dataset",
+                description="Train with random-walk input noise and a normalized acceleration "
+                            "loss; writes OUT every --ckpt-every steps and OUT with suffix "
+                            ".best.pt at the best validation rollout. Uses a GPU when present.")
+    q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
+    add_out(q, "checkpoint file", default=Path("data/gns.pt"), metavar="OUT.pt")
+    q.add_argument("--resume", type=Path, help="continue from this checkpoint (its model "
+                                               "config and statistics win)")
+    q.add_argument("--init", type=Path, help="fine-tune: start from this checkpoint's weights, "
+                                             "model config and statistics with a fresh "
+                                             "optimizer and learning-rate schedule")
+    q.add_argument("--deepen", type=int, metavar="M",
+                   help="with --init: append message-passing steps up to M, each an identity "
+                        "at first, so training starts from the checkpoint's predictions and "
+                        "can widen its receptive field (M x the connectivity radius)")
+    q.add_argument("--latent", type=int, default=128, help="latent size")
+    q.add_argument("--mlp-layers", type=int, default=2, help="hidden layers per MLP")
+    q.add_argument("--message-passing", type=int, default=10, metavar="M",
+                   help="message-passing steps")
+    q.add_argument("--steps", type=int, default=100_000, help="total training steps")
+    q.add_argument("--batch", type=int, default=2, help="windows per step")
+    q.add_argument("--lr", type=float, default=1e-3, help="initial learning rate")
+    q.add_argument("--lr-final", type=float, default=1e-5, help="learning-rate floor")
+    q.add_argument("--lr-decay-steps", type=int, default=100_000,
+                   help="steps per tenfold learning-rate decay")
+    q.add_argument("--noise-std", type=float, default=3e-5, metavar="M_PER_FRAME",
+                   help="input velocity noise std, m/frame")
+    q.add_argument("--val-every", type=int, default=2000, help="steps between validations")
+    q.add_argument("--val-frames", type=int, default=100, help="frames per validation rollout")
+    q.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints")
+    q.add_argument("--keep-validated", action="store_true",
+                   help="also keep OUT_step<N>.pt at every validation, to choose a checkpoint "
+                        "afterwards by the logged runout and displacement-range errors")
+    q.add_argument("--ema-decay", type=float, default=0.0, metavar="D",
+                   help="validate and save an exponential moving average of the weights, "
+                        "updated every step with this decay (e.g. 0.999: about the last "
+                        "1,000 steps); 0: the weights as trained")
+    q.add_argument("--pushforward", type=int, default=0, metavar="K",
+                   help="pushforward training: a window first rolls 1 to K frames forward "
+                        "with the model (no gradient) and then learns the true next "
+                        "velocity from its own predictions; 0: off")
+    q.add_argument("--pushforward-prob", type=float, default=0.5, metavar="P",
+                   help="fraction of windows unrolled when --pushforward is on")
+    q.add_argument("--moving-fraction", type=float, default=0.0, metavar="F",
+                   help="fraction of windows that end while their scene still moves (before "
+                        "its kinetic energy is back at rest, gns.events); the rest are drawn "
+                        "from the whole run. 0: every frame alike")
+    q.add_argument("--seed", type=int, default=0, help="random seed")
+    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    q.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    q.set_defaults(func=_cmd_train)
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     import torch
 
-    from minority.gns.dataset import DatasetError
     from minority.gns.model import ModelConfig
-    from minority.gns.train import CheckpointError, TrainConfig, train
+    from minority.gns.train import TrainConfig, train
 
+    if (status := missing("oracle train", args.dataset, args.resume, args.init)) is not None:
+        return status
     if args.threads:
         torch.set_num_threads(args.threads)
     mc = ModelConfig(latent=args.latent, mlp_layers=args.mlp_layers,
@@ -59,136 +172,54 @@ def _cmd_train(args: argparse.Namespace) -> int:
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     deepen_to=args.deepen, device=args.device)
-    except CheckpointError as exc:  # --resume or --init
+    except ValueError as exc:  # CheckpointError, DatasetError, a bad option
         return _fail("train", exc, BAD_INPUT)
-    except (DatasetError, OSError, ValueError) as exc:
-        print(f"minority oracle train: error: {exc}", file=sys.stderr)
-        return 1
+    except OSError as exc:
+        return _fail("train", exc, FAILED)
     print(f"checkpoint {out}", file=sys.stderr)
     return 0
 
 
-def _cmd_rollout(args: argparse.Namespace) -> int:
-    import torch
+# --- evaluate, diagnose -----------------------------------------------------------------
 
-    from minority.gns.rollout import RolloutError
-    from minority.gns.runtime import tune_allocator
-    from minority.gns.train import CheckpointError
-    from minority.sim.scene import SceneError, scene_path
-    from minority.warmstart import predict_scene
-
-    tune_allocator()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
-        p = predict_scene(args.checkpoint, scene_path(args.scene), args.duration, args.start,
-                          args.device, progress=True, log=sys.stderr)
-        h5 = p.write(args.out, args.vtk_every)
-    except (CheckpointError, SceneError) as exc:
-        return _fail("rollout", exc, BAD_INPUT)
-    except (RolloutError, ValueError, OSError, KeyError) as exc:
-        print(f"minority oracle rollout: error: {exc}", file=sys.stderr)
-        return 1
-    t = p.timing
-    print(f"rollout: {len(p.positions) - 1} frames in {p.wall_s:.1f} s (graph {t['graph_s']:.1f} "
-          f"s, model {t['model_s']:.1f} s, {t['clamped']} positions clamped to the domain) "
-          f"-> {h5}", file=sys.stderr)
-    return 0
-
-
-def _cmd_spec(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
-    from minority.gns.export import read_rollout
-    from minority.gns.oracle import Oracle, OracleOptions
-    from minority.protocol.errors import SpecError
-    from minority.protocol.paraview import write_pvcc_for_views
-
-    try:
-        r = read_rollout(args.rollout)
-        options = replace(OracleOptions(), run=args.run, frames=args.frames, width=args.width,
-                          height=args.height, segments=args.segments, margin=args.margin,
-                          occlusion_cull=not args.no_occlusion_cull)
-        oracle = Oracle(r["positions"], float(r["frame_interval_s"]), r["bounds_m"],
-                        float(r["particle_spacing_m"]), options)
-        spec = oracle.spec({"rollout": str(args.rollout), "checkpoint": str(r.get("checkpoint")),
-                            "scene": str(r.get("scene"))})
-        spec.save(args.out)
-        cameras = write_pvcc_for_views(spec, args.pvcc) if args.pvcc else []
-    except (ValueError, SpecError, OSError) as exc:
-        print(f"minority oracle spec: error: {exc}", file=sys.stderr)
-        return 1
-    p = oracle.summary()
-    print(f"oracle: onset {p['onset_s']:.3f} s, peak motion {p['peak_s']:.3f} s, runout end "
-          f"{p['runout_end_s']:.3f} s; displacement 0-{p['displacement_range_m'][1]:.3f} m",
-          file=sys.stderr)
-    for v in spec.views:
-        print(f"  view {v.name}: {v.t_start_s:.3f}-{v.t_end_s:.3f} s in {len(v.schedule)} windows, "
-              f"every {', '.join(f'{w.every_s * 1e3:.1f}' for w in v.schedule)} ms",
-              file=sys.stderr)
-    print(f"spec -> {args.out}" + (f"; cameras -> {args.pvcc}/*.pvcc ({len(cameras)})"
-                                    if cameras else ""), file=sys.stderr)
-    return 0
-
-
-def _cmd_preview(args: argparse.Namespace) -> int:
-    from minority.preview import preview
-    from minority.protocol.errors import SpecError
-
-    try:
-        out = preview(args.spec, args.rollout, args.out, args.columns, args.thumb_width)
-    except (ValueError, SpecError, OSError) as exc:
-        print(f"minority oracle preview: error: {exc}", file=sys.stderr)
-        return 1
-    print(f"contact sheet -> {out}", file=sys.stderr)
-    return 0
-
-
-def _load_for_cpu(args: argparse.Namespace):
-    """(model, checkpoint) of args.checkpoint, with the CPU allocator tuned and
-    args.threads torch threads (raises CheckpointError or OSError as load_checkpoint)."""
-    import torch
-
-    from minority.gns.runtime import tune_allocator
-    from minority.gns.train import load_checkpoint
-
-    tune_allocator()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    return load_checkpoint(args.checkpoint)
-
-
-def _checkpoint_on_scenes_args(q: argparse.ArgumentParser) -> None:
-    """CHECKPOINT DATASET [--split] [--scene ...], as evaluate and diagnose take them."""
-    q.add_argument("checkpoint", type=Path)
-    q.add_argument("dataset", type=Path)
-    q.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    q.add_argument("--scene", action="append", help="only this scene (repeatable)")
+def _evaluate_parser(osub) -> None:
+    q = command(osub, "evaluate", help="score a checkpoint on held-out scenes",
+                description="Roll out every scene of a split from its first MPM frames and "
+                            "compare with the MPM: runout, final height, displacement range "
+                            "(relative errors), mean position error (m), rollout time (s). A "
+                            "coarse-grained dataset's scenes are also scored against their MPM "
+                            "runs at the runs' own resolution (relative_error_full). JSON to "
+                            "stdout or --out; exit status 1 when a rollout diverges.")
+    _checkpoint_on_scenes_args(q)
+    add_out(q, "JSON file (default: stdout)", metavar="FILE.json")
+    q.set_defaults(func=_cmd_evaluate)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from minority.gns.dataset import DatasetError
     from minority.gns.evaluate import evaluate
-    from minority.gns.train import CheckpointError
 
+    if (status := missing("oracle evaluate", args.checkpoint, args.dataset)) is not None:
+        return status
     try:
         model, ckpt = _load_for_cpu(args)
         rows = evaluate(model, args.dataset, args.split, names=args.scene or None)
-    except CheckpointError as exc:
+    except (ValueError, KeyError) as exc:  # CheckpointError, DatasetError, no such scene
         return _fail("evaluate", exc, BAD_INPUT)
-    except (DatasetError, OSError, ValueError, KeyError) as exc:
-        print(f"minority oracle evaluate: error: {exc}", file=sys.stderr)
-        return 1
+    except OSError as exc:
+        return _fail("evaluate", exc, FAILED)
     doc = {"checkpoint": str(args.checkpoint), "step": ckpt["step"],
            "model_config": ckpt["model_config"], "split": args.split, "scenes": rows}
     text = json.dumps(doc, indent=1)
     if args.out:
-        args.out.write_text(text)
+        try:
+            parent_made(args.out).write_text(text)
+        except OSError as exc:
+            return _fail("evaluate", exc, FAILED)
     else:
         print(text)
-    return 0 if all("error" not in r for r in rows) else 1
+    return 0 if all("error" not in r for r in rows) else FAILED
 
 
 def _bands(text: str) -> list[tuple[int, int]]:
@@ -201,13 +232,30 @@ def _bands(text: str) -> list[tuple[int, int]]:
     return bands
 
 
+def _diagnose_parser(osub) -> None:
+    q = command(osub, "diagnose", help="one-frame predictions against a run, by region",
+                description="Teacher-forced acceleration balance (gns/diagnose.py): each frame "
+                            "of a band gets the run's own last frames as input; the predicted "
+                            "and the run's x accelerations (m/frame^2) are summed over regions "
+                            "of the column (depth below the surface, distance to the side "
+                            "walls, front) and the band. A ratio away from 1 shows where and "
+                            "when the model adds or removes momentum the run does not. One "
+                            "JSON line per (scene, band, region) to stdout, a table to stderr.")
+    _checkpoint_on_scenes_args(q)
+    q.add_argument("--bands", type=_bands, default="6:10,10:26,26:46,46:80",
+                   help="frame bands F0:F1 (last input frames F0..F1-1; frames of the "
+                        "dataset's interval, 0.005 s for the shipped data)")
+    q.set_defaults(func=_cmd_diagnose)
+
+
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     import json
 
-    from minority.gns.dataset import DatasetError, load_split
+    from minority.gns.dataset import load_split
     from minority.gns.diagnose import balance
-    from minority.gns.train import CheckpointError
 
+    if (status := missing("oracle diagnose", args.checkpoint, args.dataset)) is not None:
+        return status
     try:
         model, _ = _load_for_cpu(args)
         trajs = [t for t in load_split(args.dataset, args.split)
@@ -222,186 +270,125 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                       f"{row['frames'][1] - 1} {row['region']:>22s}: predicted "
                       f"{row['pred_m']:+.2e} run {row['true_m']:+.2e} ratio {ratio}",
                       file=sys.stderr, flush=True)
-    except CheckpointError as exc:
+    except (ValueError, KeyError) as exc:  # CheckpointError, DatasetError, no such scene
         return _fail("diagnose", exc, BAD_INPUT)
-    except (DatasetError, OSError, ValueError, KeyError) as exc:
-        print(f"minority oracle diagnose: error: {exc}", file=sys.stderr)
-        return 1
+    except OSError as exc:
+        return _fail("diagnose", exc, FAILED)
     return 0
+
+
+# --- ship -------------------------------------------------------------------------------
+
+def _ship_parser(osub) -> None:
+    q = command(osub, "ship", help="copy a checkpoint without its optimizer state",
+                description="Write the checkpoint the repository ships: weights, model config, "
+                            "statistics, history; no optimizer state.")
+    q.add_argument("checkpoint", type=Path, help="checkpoint from minority oracle train")
+    add_out(q, "the shipped checkpoint (required)", metavar="OUT.pt")
+    # deprecated spelling `ship CHECKPOINT OUT`, kept hidden for older scripts
+    q.add_argument("out_operand", nargs="?", type=Path, help=argparse.SUPPRESS)
+    q.set_defaults(func=_cmd_ship)
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
     from minority.gns.train import CheckpointError, ship
 
+    if args.out and args.out_operand and args.out != args.out_operand:
+        args._parser.error("give the output once, as -o/--out")
+    out = args.out or args.out_operand
+    if out is None:
+        args._parser.error("the following arguments are required: -o/--out")
+    if (status := missing("oracle ship", args.checkpoint)) is not None:
+        return status
     try:
-        out = ship(args.checkpoint, args.out)
+        out = ship(args.checkpoint, out)
     except CheckpointError as exc:
         return _fail("ship", exc, BAD_INPUT)
     except (OSError, ValueError, RuntimeError) as exc:
-        print(f"minority oracle ship: error: {exc}", file=sys.stderr)
-        return 1
+        return _fail("ship", exc, FAILED)
     print(f"{out}: {out.stat().st_size / 1e6:.2f} MB", file=sys.stderr)
     return 0
 
 
-def add_oracle_parser(sub) -> None:
-    p = sub.add_parser("oracle", help="GNS surrogate: dataset, train, rollout, spec",
-                       description="Build the GNS training set from MPM runs, train the "
-                                   "surrogate, roll it out on a scene, derive oracle specs.")
-    osub = p.add_subparsers(dest="oracle_command", required=True, metavar="STEP")
+# --- rollout ----------------------------------------------------------------------------
 
-    q = osub.add_parser("dataset", help="run the MPM sweep of a config and build the dataset",
-                        description="Plan column-collapse scenes from the config's ranges (train "
-                                    "/ valid / test by scene, held-out aspect ratios and "
-                                    "friction angles in test), run each with `minority sim` "
-                                    "(finished runs are kept and skipped), pack the dataset.")
-    q.add_argument("--config", type=Path, default=DEFAULT_SWEEP,
-                   help="sweep config TOML (default: gns/configs/column_sweep.toml)")
-    q.add_argument("--runs", type=Path, default=Path("data/sweep"), metavar="DIR",
-                   help="where the MPM runs go (default: data/sweep)")
-    q.add_argument("--out", type=Path, default=Path("data/dataset"), metavar="DIR",
-                   help="dataset directory (default: data/dataset)")
-    q.add_argument("--extra-train", type=int, metavar="N", help="N more train scenes than the "
-                   "config's split, drawn after its test scenes: every scene of the config "
-                   "and its run stay (default: the config's extra_train, else 0)")
-    q.add_argument("--extra-valid", type=int, metavar="N", help="the same for validation scenes")
-    q.add_argument("--jobs", type=int, default=1, help="sims run at once (default 1)")
-    q.add_argument("--threads", type=int, default=1, help="numba threads per sim (default 1)")
-    q.set_defaults(func=_cmd_dataset)
-
-    q = osub.add_parser("train", help="train the GNS on a dataset",
-                        description="Train with random-walk input noise and a normalized "
-                                    "acceleration loss; writes OUT every --ckpt-every steps "
-                                    "and OUT with suffix .best.pt at the best validation "
-                                    "rollout. Uses a GPU when present.")
-    q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
-    q.add_argument("--out", type=Path, default=Path("data/gns.pt"), help="checkpoint file")
-    q.add_argument("--resume", type=Path, help="continue from this checkpoint (its model "
-                                               "config and statistics win)")
-    q.add_argument("--init", type=Path, help="fine-tune: start from this checkpoint's weights, "
-                                             "model config and statistics with a fresh "
-                                             "optimizer and learning-rate schedule")
-    q.add_argument("--deepen", type=int, metavar="M",
-                   help="with --init: append message-passing steps up to M, each an identity "
-                        "at first, so training starts from the checkpoint's predictions and "
-                        "can widen its receptive field (M x the connectivity radius)")
-    q.add_argument("--latent", type=int, default=128, help="latent size (default 128)")
-    q.add_argument("--mlp-layers", type=int, default=2, help="hidden layers per MLP (default 2)")
-    q.add_argument("--message-passing", type=int, default=10, metavar="M",
-                   help="message-passing steps (default 10)")
-    q.add_argument("--steps", type=int, default=100_000, help="total training steps")
-    q.add_argument("--batch", type=int, default=2, help="windows per step (default 2)")
-    q.add_argument("--lr", type=float, default=1e-3, help="initial learning rate")
-    q.add_argument("--lr-final", type=float, default=1e-5, help="learning-rate floor")
-    q.add_argument("--lr-decay-steps", type=int, default=100_000,
-                   help="steps per tenfold learning-rate decay")
-    q.add_argument("--noise-std", type=float, default=3e-5, metavar="M_PER_FRAME",
-                   help="input velocity noise std, m/frame (default 3e-5)")
-    q.add_argument("--val-every", type=int, default=2000, help="steps between validations")
-    q.add_argument("--val-frames", type=int, default=100, help="frames per validation rollout")
-    q.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints")
-    q.add_argument("--keep-validated", action="store_true",
-                   help="also keep OUT_step<N>.pt at every validation, to choose a checkpoint "
-                        "afterwards by the logged runout and displacement-range errors")
-    q.add_argument("--ema-decay", type=float, default=0.0, metavar="D",
-                   help="validate and save an exponential moving average of the weights, "
-                        "updated every step with this decay (e.g. 0.999: about the last "
-                        "1,000 steps); 0 (default) uses the weights as trained")
-    q.add_argument("--pushforward", type=int, default=0, metavar="K",
-                   help="pushforward training: a window first rolls 1 to K frames forward "
-                        "with the model (no gradient) and then learns the true next "
-                        "velocity from its own predictions; 0 (default) off")
-    q.add_argument("--pushforward-prob", type=float, default=0.5, metavar="P",
-                   help="fraction of windows unrolled when --pushforward is on (default 0.5)")
-    q.add_argument("--moving-fraction", type=float, default=0.0, metavar="F",
-                   help="fraction of windows that end while their scene still moves (before "
-                        "its kinetic energy is back at rest, gns.events); the rest are drawn "
-                        "from the whole run. 0 (default): every frame alike")
-    q.add_argument("--seed", type=int, default=0)
-    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    q.add_argument("--device", help="cpu or cuda (default: cuda when available)")
-    q.set_defaults(func=_cmd_train)
-
-    q = osub.add_parser("evaluate", help="score a checkpoint on held-out scenes",
-                        description="Roll out every scene of a split from its first MPM "
-                                    "frames and compare with the MPM: runout, final height, "
-                                    "displacement range (relative errors), mean position "
-                                    "error (m), rollout time (s). A coarse-grained dataset's "
-                                    "scenes are also scored against their MPM runs at the runs' "
-                                    "own resolution (relative_error_full). JSON to stdout or "
-                                    "--out; exit 1 when a rollout diverges.")
-    _checkpoint_on_scenes_args(q)
-    q.add_argument("--out", type=Path, help="JSON file (default: stdout)")
-    q.add_argument("--threads", type=int, help="torch CPU threads")
-    q.set_defaults(func=_cmd_evaluate)
-
-    q = osub.add_parser("diagnose", help="one-frame predictions against a run, by region",
-                        description="Teacher-forced acceleration balance (gns/diagnose.py): "
-                                    "each frame of a band gets the run's own last frames as "
-                                    "input; the predicted and the run's x accelerations "
-                                    "(m/frame^2) are summed over regions of the column "
-                                    "(depth below the surface, distance to the side walls, "
-                                    "front) and the band. A ratio away from 1 shows where and "
-                                    "when the model adds or removes momentum the run does not. "
-                                    "One JSON line per (scene, band, region) to stdout, a "
-                                    "table to stderr.")
-    _checkpoint_on_scenes_args(q)
-    q.add_argument("--bands", type=_bands, default=_bands("6:10,10:26,26:46,46:80"),
-                   help="frame bands F0:F1 (last input frames F0..F1-1; frames of the "
-                        "dataset's interval, 0.005 s for the shipped data; default "
-                        "6:10,10:26,26:46,46:80)")
-    q.add_argument("--threads", type=int, help="torch CPU threads")
-    q.set_defaults(func=_cmd_diagnose)
-
-    q = osub.add_parser("ship", help="copy a checkpoint without its optimizer state",
-                        description="Write the checkpoint the repository ships: weights, "
-                                    "model config, statistics, history; no optimizer state.")
-    q.add_argument("checkpoint", type=Path)
-    q.add_argument("out", type=Path)
-    q.set_defaults(func=_cmd_ship)
-
-    q = osub.add_parser("rollout", help="predict a scene with a checkpoint",
-                        description="Seed the scene's bodies at the model's particle spacing "
-                                    "(any scene resolution), predict its duration frame by "
-                                    "frame, write DIR/rollout.h5 (positions m, velocities m/s "
-                                    "per frame) and DIR/vtk/rollout.pvd with one .vtp per "
-                                    "frame (displacement and velocity arrays) for ParaView.")
+def _rollout_parser(osub) -> None:
+    q = command(osub, "rollout", help="predict a scene with a checkpoint",
+                description="Seed the scene's bodies at the model's particle spacing (any "
+                            "scene resolution), predict its duration frame by frame, write "
+                            "DIR/rollout.h5 (positions m, velocities m/s per frame) and "
+                            "DIR/vtk/rollout.pvd with one .vtp per frame (displacement and "
+                            "velocity arrays) for ParaView. Exit status 1 when the rollout "
+                            "diverges.")
     q.add_argument("checkpoint", type=Path, help="checkpoint from minority oracle train")
     q.add_argument("scene", help="scene TOML file or shipped scene name (e.g. column_13k)")
-    q.add_argument("--out", type=Path, default=Path("rollout"), metavar="DIR",
-                   help="output directory (default: rollout)")
+    add_out(q, "output directory", default=Path("rollout"), metavar="DIR")
     q.add_argument("--duration", type=float, metavar="S",
                    help="simulated time to predict, s (default: the scene's duration)")
     q.add_argument("--vtk-every", type=int, default=1, metavar="K",
-                   help="write every K-th frame to the VTK series (default 1; 0: none)")
+                   help="write every K-th frame to the VTK series (0: none)")
     q.add_argument("--start", choices=["mpm", "rest"], default="mpm",
-                   help="first frames: mpm (default) runs the MPM at the model's spacing for "
-                        "the model's C history frames (the state its training saw); rest "
-                        "starts from C frames at rest")
+                   help="first frames: mpm runs the MPM at the model's spacing for the "
+                        "model's C history frames (the state its training saw); rest starts "
+                        "from C frames at rest")
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    q.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    q.add_argument("--device", default="cpu", help="cpu or cuda")
     q.set_defaults(func=_cmd_rollout)
 
-    q = osub.add_parser("spec", help="derive a render spec from a rollout",
-                        description="Find the predicted events (failure onset, fastest motion, "
-                                    "end of runout), plan a side view over the initiation and "
-                                    "top and aerial views over the runout, framed on the "
-                                    "predicted extent; spend the frame budget where motion is "
-                                    "fastest; regions of interest around the moving particles "
-                                    "per window; colormap range from the predicted "
-                                    "displacement. Edit the JSON freely afterwards.")
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    import torch
+
+    from minority.gns.rollout import RolloutError
+    from minority.gns.runtime import tune_allocator
+    from minority.sim.scene import SceneError, scene_path
+    from minority.warmstart import predict_scene
+
+    if (status := missing("oracle rollout", args.checkpoint)) is not None:
+        return status
+    tune_allocator()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        p = predict_scene(args.checkpoint, scene_path(args.scene), args.duration, args.start,
+                          args.device, progress=True, log=sys.stderr)
+    except (SceneError, ValueError, KeyError) as exc:  # CheckpointError, a scene it cannot seed
+        return _fail("rollout", exc, BAD_INPUT)
+    except (RolloutError, OSError) as exc:
+        return _fail("rollout", exc, FAILED)
+    try:
+        h5 = p.write(args.out, args.vtk_every)
+    except OSError as exc:
+        return _fail("rollout", exc, FAILED)
+    t = p.timing
+    print(f"rollout: {len(p.positions) - 1} frames in {p.wall_s:.1f} s (graph {t['graph_s']:.1f} "
+          f"s, model {t['model_s']:.1f} s, {t['clamped']} positions clamped to the domain) "
+          f"-> {h5}", file=sys.stderr)
+    return 0
+
+
+# --- spec -------------------------------------------------------------------------------
+
+def _spec_parser(osub) -> None:
+    q = command(osub, "spec", help="derive a render spec from a rollout",
+                description="Find the predicted events (failure onset, fastest motion, end of "
+                            "runout), plan a side view over the initiation and top and aerial "
+                            "views over the runout, framed on the predicted extent; spend the "
+                            "frame budget where motion is fastest; regions of interest around "
+                            "the moving particles per window; colormap range from the "
+                            "predicted displacement. Edit the JSON freely afterwards.")
     q.add_argument("rollout", type=Path, help="rollout.h5 from minority oracle rollout")
-    q.add_argument("-o", "--out", type=Path, default=Path("spec.json"),
-                   help="spec JSON to write (default: spec.json)")
-    q.add_argument("--run", default="run", help="run id the spec is for (default: run)")
-    q.add_argument("--frames", type=int, default=120,
-                   help="frame budget, all views together (default 120)")
-    q.add_argument("--width", type=int, default=1024, help="image width, px (default 1024)")
-    q.add_argument("--height", type=int, default=768, help="image height, px (default 768)")
+    add_out(q, "spec JSON to write", default=Path("spec.json"), metavar="FILE.json")
+    q.add_argument("--run", metavar="ID",
+                   help="run id the spec is for (default: the run id `minority sim` gives the "
+                        "rollout's scene, its name)")
+    q.add_argument("--frames", type=int, default=120, help="frame budget, all views together")
+    q.add_argument("--width", type=int, default=1024, help="image width, px")
+    q.add_argument("--height", type=int, default=768, help="image height, px")
     q.add_argument("--segments", type=int, default=4,
-                   help="windows per view, each with its cadence and region (default 4)")
+                   help="windows per view, each with its cadence and region")
     q.add_argument("--margin", type=float, default=0.1,
-                   help="framing and colormap margin, fraction (default 0.1)")
+                   help="framing and colormap margin, fraction")
     q.add_argument("--no-occlusion-cull", action="store_true",
                    help="send every particle in the regions, hidden ones too (needed for "
                         "`minority serve --shadows`: hidden particles cast shadows)")
@@ -409,14 +396,114 @@ def add_oracle_parser(sub) -> None:
                    help="also write each view's camera as DIR/{view}.pvcc for ParaView")
     q.set_defaults(func=_cmd_spec)
 
-    q = osub.add_parser("preview", help="render a spec's views on a rollout (contact sheet)",
-                        description="Render each view of the spec on the rollout's frames that "
-                                    "its schedule selects (regions of interest applied), a row "
-                                    "per view, and save one PNG to judge before the full run.")
+
+def default_run(rollout: dict) -> str:
+    """The run id `minority sim` uses for the rollout's scene when no --run is given: the
+    scene's name (sim.ranks: `config.run or scene.name`), as an MPM run's trajectory records
+    it (scene_name) or read from the scene file a GNS rollout names. Raises SceneError."""
+    from minority.sim.scene import SceneError, load_scene, scene_path
+
+    if rollout.get("scene_name"):
+        return str(rollout["scene_name"])
+    if not rollout.get("scene"):
+        raise SceneError("the rollout names no scene")
+    return load_scene(scene_path(str(rollout["scene"]))).name
+
+
+def _cmd_spec(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from minority.gns.export import read_rollout
+    from minority.gns.oracle import Oracle, OracleOptions
+    from minority.protocol.errors import SpecError
+    from minority.protocol.paraview import write_pvcc_for_views
+    from minority.sim.scene import SceneError
+
+    if (status := missing("oracle spec", args.rollout)) is not None:
+        return status
+    try:
+        r = read_rollout(args.rollout)
+    except (ValueError, KeyError, OSError) as exc:
+        return _fail("spec", exc, BAD_INPUT)
+    try:
+        run = args.run or default_run(r)
+    except (SceneError, OSError) as exc:
+        return _fail("spec", f"{exc}: pass --run (the run id of the sim the spec is for)",
+                     BAD_INPUT)
+    try:
+        options = replace(OracleOptions(), run=run, frames=args.frames, width=args.width,
+                          height=args.height, segments=args.segments, margin=args.margin,
+                          occlusion_cull=not args.no_occlusion_cull)
+        oracle = Oracle(r["positions"], float(r["frame_interval_s"]), r["bounds_m"],
+                        float(r["particle_spacing_m"]), options)
+        spec = oracle.spec({"rollout": str(args.rollout), "checkpoint": str(r.get("checkpoint")),
+                            "scene": str(r.get("scene"))})
+    except (ValueError, SpecError, KeyError) as exc:
+        return _fail("spec", exc, BAD_INPUT)
+    try:
+        spec.save(parent_made(args.out))
+        cameras = write_pvcc_for_views(spec, args.pvcc) if args.pvcc else []
+    except OSError as exc:
+        return _fail("spec", exc, FAILED)
+    p = oracle.summary()
+    print(f"oracle: onset {p['onset_s']:.3f} s, peak motion {p['peak_s']:.3f} s, runout end "
+          f"{p['runout_end_s']:.3f} s; displacement 0-{p['displacement_range_m'][1]:.3f} m",
+          file=sys.stderr)
+    for v in spec.views:
+        print(f"  view {v.name}: {v.t_start_s:.3f}-{v.t_end_s:.3f} s in {len(v.schedule)} windows, "
+              f"every {', '.join(f'{w.every_s * 1e3:.1f}' for w in v.schedule)} ms",
+              file=sys.stderr)
+    print(f"spec {spec.run!r} -> {args.out}" + (f"; cameras -> {args.pvcc}/*.pvcc ({len(cameras)})"
+                                                 if cameras else ""), file=sys.stderr)
+    return 0
+
+
+# --- preview ----------------------------------------------------------------------------
+
+def _preview_parser(osub) -> None:
+    q = command(osub, "preview", help="render a spec's views on a rollout (contact sheet)",
+                description="Render each view of the spec on the rollout's frames that its "
+                            "schedule selects (regions of interest applied), a row per view, "
+                            "and save one PNG to judge before the full run.")
     q.add_argument("spec", type=Path, help="spec JSON (minority oracle spec, or edited)")
     q.add_argument("rollout", type=Path, help="rollout.h5 from minority oracle rollout")
-    q.add_argument("-o", "--out", type=Path, default=Path("preview.png"),
-                   help="contact sheet PNG (default: preview.png)")
-    q.add_argument("--columns", type=int, default=6, help="frames per view (default 6)")
+    add_out(q, "contact sheet PNG", default=Path("preview.png"), metavar="FILE.png")
+    q.add_argument("--columns", type=int, default=6, help="frames per view")
     q.add_argument("--thumb-width", type=int, default=256, help="thumbnail width, px")
-    q.set_defaults(func=_cmd_preview)
+    q.set_defaults(func=_cmd_preview, kernels=True)
+
+
+def _cmd_preview(args: argparse.Namespace) -> int:
+    from minority.preview import preview
+    from minority.protocol.errors import SpecError
+
+    if (status := missing("oracle preview", args.spec, args.rollout)) is not None:
+        return status
+    try:
+        out = preview(args.spec, args.rollout, args.out, args.columns, args.thumb_width)
+    except (ValueError, SpecError) as exc:
+        return _fail("preview", exc, BAD_INPUT)
+    except OSError as exc:
+        return _fail("preview", exc, FAILED)
+    print(f"contact sheet -> {out}", file=sys.stderr)
+    return 0
+
+
+# --- oracle -----------------------------------------------------------------------------
+
+STEPS = {"dataset": _dataset_parser, "train": _train_parser, "evaluate": _evaluate_parser,
+         "diagnose": _diagnose_parser, "ship": _ship_parser, "rollout": _rollout_parser,
+         "spec": _spec_parser, "preview": _preview_parser}  # pipeline order
+
+
+def add_parser(sub) -> None:
+    """Add `oracle` and its steps to the `minority` subparsers `sub`."""
+    p = command(sub, "oracle", help=f"GNS surrogate: {', '.join(STEPS)}",
+                description="Build the GNS training set from MPM runs, train the surrogate, "
+                            "evaluate and diagnose it, ship a checkpoint, roll it out on a "
+                            "scene, derive oracle specs and preview them. Exit status 2 on "
+                            "bad input, 1 when a step fails at run time.")
+    osub = p.add_subparsers(dest="oracle_command", required=True, metavar="STEP")
+    for add in STEPS.values():
+        add(osub)
+    p.set_defaults(kernels=True)

@@ -1,6 +1,7 @@
 """The `minority` command: help at every level, every subcommand built and dispatched."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -55,3 +56,16 @@ def test_record_and_serve_say_when_they_cannot_write_their_log(tmp_path, capsys)
                  "--out", str(tmp_path / "frames"), "--record", str(blocker / "x.mcap")]) == 1
     err = capsys.readouterr().err
     assert "cannot start" in err and str(blocker) in err
+
+
+def test_sim_without_an_mpi_library_names_the_fix(tmp_path):
+    """No libmpi for mpi4py (a venv without the `mpi` extra, no system MPI): one line that
+    says what to install, exit status 1, no traceback."""
+    env = {**os.environ, "MPI4PY_LIBMPI": str(tmp_path / "libmpi.so.12")}  # not there
+    proc = subprocess.run([sys.executable, "-m", "minority", "sim", "tiny", "--no-publish",
+                           "--quiet", "-o", str(tmp_path / "x.h5")], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.startswith("minority sim: error: no MPI library")
+    assert "minority[mpi]" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.h5").exists()

@@ -3,10 +3,13 @@
 numba keys a cached function on its own file's stamp and bytecode only: a jitted function
 that calls (or inlines) one from another file keeps running the old callee after that
 file is edited (e.g. a change to ``sim/plasticity.py`` does not reach the cached
-``sim.kernels.g2p``). Each numba package calls `drop_stale_numba_cache` from its
-``__init__``: when the hash of the package's sources differs from the one recorded beside
+``sim.kernels.g2p``). The `minority` entry point (minority/cli.py ``main``) calls
+`drop_stale_numba_cache` for each numba package before a command that runs kernels, never at
+import time: when the hash of the package's sources differs from the one recorded beside
 its cache, the package's cache files are deleted and numba compiles afresh (any edit of
-the package drops all of its kernels: about a minute of compiling at the next start).
+the package drops all of its kernels: about a minute of compiling at the next start). Code
+that imports the kernels without the entry point (tests, bench/) calls it itself or runs
+`make clean-numba` after an edit.
 The cache is where numba puts it: ``__pycache__`` beside the sources, or numba's
 directory for the package under ``NUMBA_CACHE_DIR`` when that is set (the systemd unit
 sets it). numba treats a cache file removed under it as a miss, so concurrent processes

@@ -1,7 +1,1 @@
 """MPM ranks: physics kernels (numba), scenes, MPI decomposition, publishing."""
-
-from pathlib import Path
-
-from minority.protocol.jitcache import drop_stale_numba_cache
-
-drop_stale_numba_cache(Path(__file__).parent)  # numba does not track cross-file changes

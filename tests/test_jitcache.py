@@ -1,17 +1,26 @@
-"""numba's cache=True misses edits to a callee's file; protocol.jitcache drops it."""
+"""numba's cache=True misses edits to a callee's file; protocol.jitcache drops it, called by
+the `minority` entry point (minority/cli.py main), never at import time."""
 
 import os
 import subprocess
 import sys
 import textwrap
+from importlib.util import find_spec
+from pathlib import Path
 
 import pytest
 from minority.protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
 
-PACKAGE_INIT = textwrap.dedent("""
+from minority.cli import NUMBA_PACKAGES, main
+
+# what the entry point does before a command that runs kernels, then the command's import
+ENTRY_POINT = textwrap.dedent("""
+    import sys
     from pathlib import Path
     from minority.protocol.jitcache import drop_stale_numba_cache
-    drop_stale_numba_cache(Path(__file__).parent)
+    drop_stale_numba_cache(Path(sys.argv[1]) / "pkg")
+    from pkg.caller import caller
+    print(caller())
 """)
 CALLER = textwrap.dedent("""
     from numba import njit
@@ -24,13 +33,17 @@ CALLER = textwrap.dedent("""
 CALLEE = "from numba import njit\n\n@njit(cache=True, inline='always')\ndef value():\n    return {}\n"
 
 
-def _run_caller(root, cache_dir=None) -> int:
+def _env(root, cache_dir=None) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     if cache_dir is not None:
         env["NUMBA_CACHE_DIR"] = str(cache_dir)
     env["PYTHONPATH"] = os.pathsep.join([str(root), os.getcwd()])
-    out = subprocess.run([sys.executable, "-c", "from pkg.caller import caller; print(caller())"],
-                         env=env, capture_output=True, text=True, timeout=120, check=True)
+    return env
+
+
+def _run_caller(root, cache_dir=None) -> int:
+    out = subprocess.run([sys.executable, "-c", ENTRY_POINT, str(root)], env=_env(root, cache_dir),
+                         capture_output=True, text=True, timeout=120, check=True)
     return int(out.stdout.strip())
 
 
@@ -38,7 +51,7 @@ def _run_caller(root, cache_dir=None) -> int:
 def test_edit_of_a_callee_file_reaches_the_cached_caller(tmp_path, user_cache):
     pkg = tmp_path / "pkg"
     pkg.mkdir()
-    (pkg / "__init__.py").write_text(PACKAGE_INIT)
+    (pkg / "__init__.py").write_text("")
     (pkg / "caller.py").write_text(CALLER)
     (pkg / "callee.py").write_text(CALLEE.format(1))
     cache_dir = tmp_path / "numba-cache" if user_cache else None
@@ -80,3 +93,25 @@ def test_drop_works_in_numba_cache_dir(tmp_path, monkeypatch):
     assert drop_stale_numba_cache(pkg)
     assert not list(cache.glob("*.nbc")) and (cache / MARKER).is_file()
     assert not (pkg / "__pycache__").exists()
+
+
+def test_importing_the_numba_packages_does_no_housekeeping(tmp_path):
+    """No work at import time: the packages import without hashing or touching a cache."""
+    cache = tmp_path / "numba-cache"
+    code = f"import {', '.join(NUMBA_PACKAGES)}, minority.protocol"
+    subprocess.run([sys.executable, "-c", code], env=_env(tmp_path, cache), check=True,
+                   capture_output=True, timeout=120)
+    assert not list(tmp_path.rglob(MARKER))
+
+
+def test_the_entry_point_drops_stale_caches_before_a_command_that_runs_kernels(monkeypatch,
+                                                                                capsys):
+    called = []
+    monkeypatch.setattr("minority.protocol.jitcache.drop_stale_numba_cache",
+                        lambda folder: called.append(Path(folder)))
+    assert main(["sim", "no_such_scene", "--quiet"]) == 2  # bad input, after the housekeeping
+    assert called == [Path(find_spec(name).submodule_search_locations[0])
+                      for name in NUMBA_PACKAGES]
+    called.clear()
+    assert main(["log", "check", "no_such.mcap"]) == 2  # runs no kernel: no housekeeping
+    assert called == []

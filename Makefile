@@ -4,6 +4,9 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# optional dependency groups: mpi is the MPICH wheel (`make EXTRAS=test` on a cluster whose
+# own MPI mpi4py is built against, see README.md)
+EXTRAS ?= mpi,test
 
 .PHONY: demo test test-slow bench lint clean clean-numba
 
@@ -13,7 +16,7 @@ $(BIN)/python:
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e '.[$(EXTRAS)]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -88,17 +88,24 @@ class FrameWriter:
     def write_frame(self, time_s: float, fields: dict[str, np.ndarray], **series) -> None:
         """Append one frame: fields holds [n, 3] arrays named as FRAME_FIELDS (m, m/s, m),
         series a value of each extra per-frame dataset; time_s (s) is written last."""
-        f, k = self._f, self.frames
+        self.write_frames(np.array([time_s]), {k: v[None] for k, v in fields.items()},
+                          **{k: np.asarray(v)[None] for k, v in series.items()})
+
+    def write_frames(self, times_s: np.ndarray, fields: dict[str, np.ndarray],
+                     **series) -> None:
+        """Append frames at once: times_s [frames] (s), fields [frames, n, 3] arrays named as
+        FRAME_FIELDS, series [frames, ...] per extra dataset; times are written last."""
+        f, k, m = self._f, self.frames, len(times_s)
         for name in FRAME_FIELDS:
             ds = f[name]
-            ds.resize(k + 1, axis=0)
-            ds[k] = fields[name].astype(np.float32)
-        for name, value in [*((s, series[s]) for s in self.series), ("time", time_s)]:
+            ds.resize(k + m, axis=0)
+            ds[k:] = fields[name].astype(np.float32)
+        for name, values in [*((s, series[s]) for s in self.series), ("time", times_s)]:
             ds = f[name]
-            ds.resize(k + 1, axis=0)
-            ds[k] = value
+            ds.resize(k + m, axis=0)
+            ds[k:] = values
         f.flush()
-        self.frames = k + 1
+        self.frames = k + m
 
     def close(self) -> None:
         if self._f.id.valid:
@@ -120,10 +127,9 @@ def write_rollout(path: str | Path, positions: np.ndarray, velocities: np.ndarra
     frames, n, _ = positions.shape
     with FrameWriter(path, n, fmt=ROLLOUT_FORMAT, units=ROLLOUT_UNITS,
                      attrs={"frame_interval_s": frame_interval_s, **attrs}) as w:
-        for k in range(frames):
-            w.write_frame(k * frame_interval_s, {"positions": positions[k],
-                                                 "velocities": velocities[k],
-                                                 "displacements": positions[k] - positions[0]})
+        w.write_frames(np.arange(frames) * frame_interval_s, {
+            "positions": positions, "velocities": velocities,
+            "displacements": positions - positions[0]})
     return path
 
 

@@ -2,8 +2,9 @@
 
 The actual run is known from the ranks' in situ Stats (speed histograms, kinetic energy,
 displacement; every rank on a fixed cadence of simulated time), the frames the server
-rendered and the chunk bytes it received, all in the run's MCAP log. The same event rules
-as the oracle's (gns.events) apply to the actual series.
+rendered and the chunk bytes it received, all in the run's MCAP log (read by
+protocol.runlog.read_flow). The same event rules as the oracle's (gns.events) apply to the
+actual series.
 
 Critical windows: where the actual speed scale is at least half its peak (the main runout
 phase). The equal-budget baseline renders the same number of frames on a fixed cadence over
@@ -12,48 +13,22 @@ the run and sends every particle at each of its steps.
 
 from __future__ import annotations
 
-from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from minority.gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
-from minority.protocol.messages import SPEED_EDGES_M_S, Frame, Stats
+from minority.protocol.logread import LogNote
+from minority.protocol.messages import SPEED_EDGES_M_S
+from minority.protocol.runlog import FlowRecord, RunLogError, read_flow
 from minority.protocol.spec import Spec
-from minority.report import (
-    LogNote,
-    Notice,
-    chunk_info,
-    notice_on_stderr,
-    read_log_noting,
-    say_notes,
-)
+from minority.report import Notice, notice_on_stderr, say_notes
 
 EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
 EDGES = np.asarray(SPEED_EDGES_M_S)
 
-
-class ScoreError(ValueError):
-    pass
-
-
-@dataclass
-class RunRecord:
-    """What the log says the run did."""
-
-    time_s: np.ndarray  # [k] stats times (s), complete steps only
-    hist: np.ndarray  # [k, bins] all particles' speeds
-    hist_in: np.ndarray  # [k, bins] particles inside the open regions
-    kinetic_m2_s2: np.ndarray  # [k] mean |v|^2
-    windows_open: np.ndarray  # [k] bool
-    particles: int
-    max_displacement_m: float
-    frame_times_s: dict[str, list[float]] = field(default_factory=dict)  # per view
-    chunk_bytes: int = 0
-    chunk_steps: dict[int, tuple[float, int]] = field(default_factory=dict)  # step: (t, B/p)
-    incomplete_stats_steps: int = 0
-    log_notes: tuple[LogNote, ...] = ()  # the log is truncated or damaged: what was read of it
+ScoreError = RunLogError  # bad input (no stats, no such file): exit 2
+RunRecord = FlowRecord  # what the log says the run did (protocol.runlog reads it)
 
 
 def quantile_from_histogram(hist: np.ndarray, q: float) -> np.ndarray:
@@ -79,57 +54,16 @@ def moving_count(hist: np.ndarray, threshold_m_s: float) -> np.ndarray:
     return hist[:, lower >= threshold_m_s].sum(axis=1)
 
 
-def load_run(path: str | Path, run: str | None = None, notice: Notice | None = None) -> RunRecord:
+def load_run(path: str | Path, run: str | None = None,
+             notice: Notice | None = None) -> RunRecord:
     """The stats, frames and chunk sizes of one run of a log (`run` None: every record, for a
     log that holds one run). A truncated or damaged log is read up to its last complete
     chunk, said once to `notice` (default: a line on stderr) and kept in log_notes."""
     notes: list[LogNote] = []
     try:
-        return _load_run(path, run, notes)
+        return read_flow(path, run, notes)
     finally:
         say_notes(notes, notice or notice_on_stderr("minority report score"))
-
-
-def _load_run(path: str | Path, run: str | None, notes: list[LogNote]) -> RunRecord:
-    by_step: dict[int, list[Stats]] = defaultdict(list)
-    frames: dict[str, list[float]] = defaultdict(list)
-    chunk_bytes, chunk_steps = 0, {}
-    for rec in read_log_noting(path, notes):
-        parts = rec.topic.split("/")
-        if run is not None and (len(parts) < 2 or parts[1] != run):
-            continue
-        kind = parts[2] if len(parts) >= 3 else ""
-        if kind == "chunk":  # header numbers only: no pass over the particle data
-            c = chunk_info(rec.data)
-            chunk_bytes += c.nbytes
-            if c.count:
-                chunk_steps.setdefault(c.step, (c.time_s, c.particle_bytes))
-            continue
-        if kind not in ("stats", "frame"):
-            continue
-        msg = rec.decode()
-        if isinstance(msg, Stats):
-            by_step[msg.step].append(msg)
-        elif isinstance(msg, Frame):
-            frames[msg.view].append(msg.time_s)
-    if not by_step:
-        raise ScoreError(f"{path}: no stats records{'' if run is None else f' of run {run!r}'}"
-                         " (was the run published with stats on?)")
-    ranks = max(len({s.rank for s in v}) for v in by_step.values())
-    steps = sorted(k for k, v in by_step.items() if len({s.rank for s in v}) == ranks)
-    rows = [by_step[k] for k in steps]
-    hist_in = np.array([np.sum([s.hist_in_regions for s in r], axis=0) for r in rows])
-    hist_out = np.array([np.sum([s.hist_elsewhere for s in r], axis=0) for r in rows])
-    count = np.array([sum(s.count for s in r) for r in rows])
-    return RunRecord(
-        time_s=np.array([r[0].time_s for r in rows]), hist=hist_in + hist_out, hist_in=hist_in,
-        kinetic_m2_s2=np.array([sum(s.speed_sq_sum_m2_s2 for s in r) for r in rows])
-        / np.maximum(count, 1),
-        windows_open=np.array([r[0].windows_open for r in rows]),
-        particles=int(count.max()),
-        max_displacement_m=max(s.max_displacement_m for r in rows for s in r),
-        frame_times_s=dict(frames), chunk_bytes=chunk_bytes, chunk_steps=chunk_steps,
-        incomplete_stats_steps=len(by_step) - len(steps), log_notes=tuple(notes))
 
 
 def _inside(times, windows) -> int:

@@ -234,11 +234,15 @@ class LogNote:
         return f"log truncated: {self.detail}"
 
 
-def read_log_noting(path: str | Path, notes: list[LogNote],
+def read_log_noting(path: str | Path, notes: list[LogNote] | None,
                     topics: Iterable[str] | None = None) -> Iterator[LogRecord]:
     """read_log, with its LogTruncatedWarning or LogDamagedWarning added to `notes` (once
-    per distinct note) instead of shown; any other warning passes on as it was."""
+    per distinct note) instead of shown; any other warning passes on as it was. `notes`
+    None: read_log itself, its warnings shown."""
     records = read_log(path, topics)
+    if notes is None:
+        yield from records
+        return
     while True:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", LogTruncatedWarning)

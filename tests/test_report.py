@@ -232,3 +232,32 @@ def test_cli_bad_input_has_no_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().endswith("not an MCAP file (no MCAP magic at its start)")
+
+
+def test_an_indexed_log_and_the_same_log_cut_short_report_the_same(log_path, tmp_path,
+                                                                     monkeypatch):
+    """A complete log is read through its index (frames and rejected records counted from
+    its summary, never read); the same log without its footer is read front to back."""
+    from minority.protocol import runlog
+
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log_path.read_bytes()[:-20])
+    asked = []
+    real = runlog.read_log_noting
+
+    def spy(path, notes, topics=None):
+        asked.append(topics)
+        return real(path, notes, topics)
+
+    monkeypatch.setattr(runlog, "read_log_noting", spy)
+    whole, said = load_run(log_path), []
+    short = load_run(cut, notice=said.append)
+    assert asked[0] is not None and not any("frame" in t for t in asked[0])
+    assert asked[1] is None  # no summary: everything, once
+    fields = ("run", "runs", "timings", "events", "chunks", "frames", "spec", "rejected",
+              "undecodable")
+    assert [getattr(whole, f) for f in fields] == [getattr(short, f) for f in fields]
+    assert whole.frames == {"side": 3, "top": 2} and not whole.notes
+    assert [n.kind for n in short.notes] == ["truncated"] and len(said) == 1
+    assert markdown(whole).replace(str(log_path), "L") == markdown(
+        dataclasses.replace(short, notes=())).replace(str(cut), "L")

@@ -144,3 +144,15 @@ def test_cli_report_score(tmp_path, capsys):
     assert usage.value.code == 2 and "usage: minority report score" in capsys.readouterr().err
     assert main(["report", "score", str(tmp_path / "spec.json"), str(tmp_path / "no.mcap")]) == 2
     assert "no.mcap: no such file" in capsys.readouterr().err
+
+
+def test_an_indexed_log_and_the_same_log_cut_short_score_the_same(tmp_path):
+    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20), other_run=True)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((tmp_path / "run.mcap").read_bytes()[:-20])  # no footer: read front to back
+    said = []
+    whole, short = load_run(tmp_path / "run.mcap", RUN), load_run(cut, RUN, notice=said.append)
+    a, b = score(make_spec(), whole), score(make_spec(), short)
+    assert a.pop("log") == {"complete": True, "notes": []}
+    assert b.pop("log")["complete"] is False and len(said) == 1
+    assert json.dumps(a, default=float) == json.dumps(b, default=float)

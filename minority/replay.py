@@ -1,230 +1,46 @@
 """`minority replay`: re-render a recorded run with its own spec or a new one, export it as a
 VTK series for ParaView, or re-publish it to a running render server.
 
-Offline, the log's chunks are assembled into steps as the daemon assembles them (a step is
-complete when it holds a chunk of every rank; what is missing at the end is rendered and
-reported incomplete) and rendered by `render_server.frames.render_views`, the daemon's own
-function, so the log's own spec gives pixel-identical frames. A new spec may ask for what the
-log does not hold; such views are reported per view, with the steps, and not rendered:
-- a field the chunks do not carry;
-- particles the simulation culled away: the view's regions at a step reach outside the
-  regions the recorded spec requested at that step, or its decimation needs particles (or
-  particle ids) that the recorded stride left out, or the recorded views were occlusion
-  culled and none of them sees what this view sees (same camera, size, stride, regions);
-- steps the new schedule wants that were never recorded (estimated from the recorded steps'
-  numbers and times: step numbers for every_steps windows, instants for every_s windows).
+The re-rendering (and what a new spec may ask that the log does not hold) is
+render_server.rerender's; the re-publishing protocol.republish's. This module wires them
+to the command: warnings on stderr, the VTK writer.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
 import threading
-import time
-from collections import defaultdict
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
-from functools import lru_cache
+from collections.abc import Callable
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import zenoh
 
-from minority.protocol import keys
-from minority.protocol.errors import ProtocolError
-from minority.protocol.log import read_log
-from minority.protocol.messages import Chunk
-from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
-from minority.protocol.spec import ID_FIELD, Region, Spec, View
-from minority.protocol.view import INSTANT_TOLERANCE
-from minority.render_server.assemble import AssembledStep, StepAssembler
-from minority.render_server.frames import render_views
-from minority.report import LogNote, Notice, notice_on_stderr, read_log_noting, say_notes
+from minority.protocol.logread import LogNote
+from minority.protocol.republish import (  # noqa: F401 - the command's names, as before
+    REPLAY_QOS,
+    NoServer,
+    PublishSummary,
+    republish,
+)
+from minority.protocol.runlog import RunLogError, log_run, log_specs  # noqa: F401 - as before
+from minority.protocol.spec import Spec
+from minority.render_server.assemble import AssembledStep
+from minority.render_server.rerender import (  # noqa: F401 - the command's names, as before
+    MAX_PENDING_STEPS,
+    SHOWN_STEPS,
+    UNRECORDED,
+    ReplaySummary,
+    ViewReport,
+    covered,
+    missing_data,
+    recorded_steps,
+    rerender,
+    unrecorded,
+)
+from minority.report import Notice, notice_on_stderr, say_notes
 
-# The simulation's sender QoS (sim.publish.SENDER_QOS: block, data priority), not imported so
-# that replay does not load the simulation; tests check that the two agree.
-REPLAY_QOS = LOSSLESS_QOS
-MAX_PENDING_STEPS = 64  # steps assembled at once; past that the oldest is released incomplete
-SHOWN_STEPS = 8  # steps listed per reported problem
-UNRECORDED = "the new schedule wants them and the log does not hold them"
-
-
-class ReplayError(Exception):
-    """The log cannot be replayed as asked (no such run, no spec, no chunks)."""
-
-
-class NoServer(ReplayError):
-    """--publish found no render server subscribed to the run's chunks."""
-
-
-@dataclass
-class ViewReport:
-    frames: int = 0
-    problems: dict[str, list] = field(default_factory=lambda: defaultdict(list))  # why -> steps
-
-
-@dataclass
-class ReplaySummary:
-    run: str
-    spec_source: str  # "the log's spec" or "a given spec"
-    steps: int = 0  # steps assembled from the log
-    incomplete: list[tuple[int, int, int]] = field(default_factory=list)  # step, got, expected
-    frames: int = 0
-    views: dict[str, ViewReport] = field(default_factory=dict)
-    unchecked: int = 0  # due steps the recorded spec did not schedule (culling not known)
-    late: int = 0  # chunks of a step already released, or duplicates
-    out: Path | None = None
-    vtk: Path | None = None
-    log_notes: list[LogNote] = field(default_factory=list)  # truncated or damaged: read so far
-
-    def text(self) -> str:
-        lines = [f"run {self.run}: {self.steps} steps replayed with {self.spec_source}, "
-                 f"{self.frames} frames"
-                 + (f" in {self.out}" if self.out else "")]
-        lines += [n.line() for n in self.log_notes]
-        if self.vtk:
-            lines.append(f"VTK series: {self.vtk}")
-        if self.incomplete:
-            lines.append(f"{len(self.incomplete)} incomplete steps (step: chunks of ranks): "
-                         + ", ".join(f"{s}: {g}/{e}" for s, g, e in self.incomplete[:SHOWN_STEPS])
-                         + (" ..." if len(self.incomplete) > SHOWN_STEPS else ""))
-        if self.late:
-            lines.append(f"{self.late} chunks dropped as duplicates or late")
-        if self.unchecked:
-            lines.append(f"{self.unchecked} steps that the recorded spec did not schedule: "
-                         f"rendered without checking their regions and decimation")
-        for name, v in self.views.items():
-            lines.append(f"view {name}: {v.frames} frames")
-            for why, steps in v.problems.items():
-                shown = ", ".join(map(str, steps[:SHOWN_STEPS]))
-                more = f" and {len(steps) - SHOWN_STEPS} more" if len(steps) > SHOWN_STEPS else ""
-                lines.append(f"  NOT RENDERED at {len(steps)} steps ({shown}{more}): {why}")
-        return "\n".join(lines)
-
-
-def log_specs(path: Path, notes: list[LogNote] | None = None) -> list[Spec]:
-    """Every spec recorded in the log, in file order (with `notes`: a truncated or damaged
-    log is noted there rather than warned of)."""
-    records = (read_log(path, ["minority/*/spec"]) if notes is None
-               else read_log_noting(path, notes, ["minority/*/spec"]))
-    return [r.decode() for r in records]
-
-
-def log_run(path: Path, specs: list[Spec], run: str | None = None,
-            notes: list[LogNote] | None = None) -> str:
-    """The run to replay: `run`, else that of the log's last spec, else of its first chunk
-    (with `notes`: a truncated or damaged log is noted there rather than warned of)."""
-    if run is not None:
-        return run
-    if specs:
-        return specs[-1].run
-    topics = ["minority/*/chunk"]
-    records = read_log(path, topics) if notes is None else read_log_noting(path, notes, topics)
-    first = next(records, None)
-    if first is None:
-        raise ReplayError(f"{path}: no chunks and no spec recorded (is it a minority MCAP log?)")
-    return keys.parse(first.topic).run
-
-
-def recorded_steps(path: Path, run: str, assembler: StepAssembler,
-                   notes: list[LogNote] | None = None
-                   ) -> Iterator[tuple[AssembledStep, Spec | None]]:
-    """The run's steps, assembled in log order, each with the recorded spec in force then
-    (with `notes`: a truncated or damaged log is noted there rather than warned of)."""
-    spec = None
-    topics = [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]
-    records = read_log(path, topics) if notes is None else read_log_noting(path, notes, topics)
-    for record in records:
-        message = record.decode()
-        if isinstance(message, Spec):
-            spec = message
-            continue
-        for step in assembler.add(message, record.log_ns, len(record.data)):
-            yield step, spec
-    for step in assembler.drain(time.time_ns()):
-        yield step, spec
-
-
-def covered(boxes: tuple[Region, ...], by: tuple[Region, ...]) -> bool:
-    """Whether the union of `by` holds every box of `boxes` (exact: each box is cut by the
-    planes of `by` and the centre of every cell must lie in some box of `by`)."""
-    return all(_box_covered(b.lo_m, b.hi_m, tuple((r.lo_m, r.hi_m) for r in by)) for b in boxes)
-
-
-@lru_cache(maxsize=1024)
-def _box_covered(lo, hi, by) -> bool:
-    if any(all(l0 <= a and b <= h0 for a, b, l0, h0 in zip(lo, hi, blo, bhi, strict=True))
-           for blo, bhi in by):
-        return True
-    axes = []
-    for a in range(3):
-        cuts = sorted({lo[a], hi[a], *(x for blo, bhi in by for x in (blo[a], bhi[a])
-                                       if lo[a] < x < hi[a])})
-        axes.append([(c0 + c1) / 2 for c0, c1 in zip(cuts, cuts[1:], strict=False)] or [lo[a]])
-    return all(any(all(blo[a] <= p[a] <= bhi[a] for a in range(3)) for blo, bhi in by)
-               for p in itertools.product(*axes))
-
-
-def _names(regions: tuple[Region, ...]) -> str:
-    return ", ".join(r.name for r in regions)
-
-
-def missing_data(spec: Spec, view: View, step: AssembledStep, recorded: Spec | None) -> str:
-    """Why the log cannot give `view` (due at `step`) what it shows, or "" when it can."""
-    if view.field not in step.fields:
-        return f"field {view.field!r} is not in the log (it holds {sorted(step.fields)})"
-    request = recorded and recorded.request(step.step, step.time_s, step.prev_time_s)
-    if not request:
-        return ""  # the recorded spec did not ask for this step: nothing to check against
-    wanted = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
-    if request.regions is not None and (wanted is None or not covered(wanted, request.regions)):
-        shown = "every particle" if wanted is None else f"regions {_names(wanted)}"
-        return (f"it shows {shown}; the simulation sent only the particles in regions "
-                f"{_names(request.regions)}")
-    k, stride = view.decimate, request.decimate
-    if k % stride:
-        return (f"decimate {k} needs particles that the recorded stride {stride} left out")
-    if k != stride and ID_FIELD not in step.fields:
-        return (f"decimate {k} needs particle ids to pick from the recorded stride {stride}, "
-                f"and the log holds no {ID_FIELD!r} field")
-    if request.visible_in and not (spec.sphere_radius_m == recorded.sphere_radius_m and any(
-            (v.camera, v.width, v.height, v.decimate, r)
-            == (view.camera, view.width, view.height, view.decimate, wanted)
-            for v, r in request.visible_in)):
-        return ("the simulation sent only the particles the recorded cameras could see "
-                "(occlusion_cull), and no recorded view has this view's camera, size, "
-                "stride, regions and sphere radius")
-    return ""
-
-
-def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list[int | str]:
-    """About which steps (every_steps windows) or instants (every_s windows) `view` would
-    render within the recorded span that the log does not hold; steps: (step, time_s s,
-    prev_time_s s) of the recorded steps."""
-    if not steps:
-        return []
-    steps = sorted(steps)
-    nums = np.array([s for s, _, _ in steps])
-    times = np.array([t for _, t, _ in steps])
-    missing: set[int] = set()
-    instants: set[float] = set()
-    for w in view.schedule:
-        if w.every_s is None:
-            first = -(-int(nums[0]) // w.every_steps) * w.every_steps
-            cand = np.arange(first, int(nums[-1]) + 1, w.every_steps)
-            cand = cand[~np.isin(cand, nums)]
-            t = np.interp(cand, nums, times)
-            missing.update(cand[(t >= w.t_start_s) & (t <= w.t_end_s)].tolist())
-            continue
-        e, t0 = w.every_s, w.t_start_s
-        s0, first_t, first_prev = steps[0]
-        k_lo = (w.instant(first_prev) + 1 if first_prev is not None
-                else math.ceil((first_t - t0) / e - INSTANT_TOLERANCE))
-        k_hi = w.instant(float(times[-1]))
-        done = {w.instant(t) for s, t, p in steps if w.wants(s, t, p)}
-        instants.update(t0 + k * e for k in range(max(k_lo, 0), k_hi + 1) if k not in done)
-    return sorted(missing) + [f"t={t:.6g} s" for t in sorted(instants)]
+ReplayError = RunLogError  # the log cannot be replayed as asked (no such run, spec, chunks)
 
 
 def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
@@ -236,78 +52,28 @@ def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
     A truncated or damaged log replays up to its last complete chunk, said once to `notice`
     (default: a line on stderr) and in the summary."""
     notes: list[LogNote] = []
+    export = None if vtk is None else (lambda run_: VtkSeries(vtk, run_))
     try:
-        summary = _replay(path, spec, out, vtk, run, shadows, progress, notes)
+        summary = rerender(path, spec, out, export, run, shadows, progress, notes)
     finally:
         say_notes(notes, notice or notice_on_stderr("minority replay"))
     summary.log_notes = notes
     return summary
 
 
-def _replay(path: Path, spec: Spec | None, out: Path | None, vtk: Path | None, run: str | None,
-            shadows: bool, progress: Callable[[str], None] | None,
-            notes: list[LogNote]) -> ReplaySummary:
-    specs = log_specs(path, notes)
-    run = log_run(path, specs, run, notes)
-    own = [s for s in specs if s.run == run]
-    if spec is None and out is not None and not own:
-        raise ReplayError(f"{path}: no spec of run {run!r} is recorded; pass --spec")
-    summary = ReplaySummary(run, "the log's spec" if spec is None else "a given spec",
-                            out=out, vtk=vtk)
-    spec = spec if spec is not None else (own[-1] if own else None)
-    if spec is not None and out is not None:
-        summary.views = {v.name: ViewReport() for v in spec.views}
-    culled = sorted({v.name for s in own for v in s.views if v.occlusion_cull})
-    if shadows and out is not None and culled and progress is not None:
-        progress(f"note: the recorded views {', '.join(culled)} had occlusion_cull: the log "
-                 "lacks the hidden particles, so their shadows are missing")
-    series = VtkSeries(vtk, run) if vtk is not None else None
-    assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
-    canvases: dict = {}
-    seen: list[tuple[int, float, float | None]] = []
-    for step, recorded in recorded_steps(path, run, assembler, notes):
-        summary.steps += 1
-        seen.append((step.step, step.time_s, step.prev_time_s))
-        if step.incomplete:
-            summary.incomplete.append((step.step, step.ranks_received, step.ranks_expected))
-        if series is not None:
-            series.add(step)
-        if out is None:
-            continue
-        ok = []
-        due = spec.wants(step.step, step.time_s, step.prev_time_s)
-        if recorded is None or not recorded.request(step.step, step.time_s, step.prev_time_s):
-            summary.unchecked += bool(due)
-        for view in due:
-            why = missing_data(spec, view, step, recorded)
-            if why:
-                summary.views[view.name].problems[why].append(step.step)
-            else:
-                ok.append(view)
-        rendered = 0
-        for r in render_views(step, spec, canvases, shadows, ok):
-            if r.error:  # not expected: missing_data checked the field
-                summary.views[r.view.name].problems[r.error].append(step.step)
-                continue
-            target = out / r.view.name / f"{step.step:06d}.png"
-            target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(r.png)
-            summary.views[r.view.name].frames += 1
-            rendered += 1
-        summary.frames += rendered
-        if progress is not None and due:
-            progress(f"step {step.step} (t = {step.time_s:.6g} s): {rendered} of {len(due)} "
-                     f"due views rendered" + (" [incomplete]" if step.incomplete else ""))
-    summary.late = assembler.stats.late + assembler.stats.duplicates
-    if series is not None:
-        summary.vtk = series.close()
-    if summary.steps == 0:
-        raise ReplayError(f"{path}: no chunks of run {run!r} recorded")
-    for view in (spec.views if out is not None else ()):
-        gaps = unrecorded(view, seen)
-        if gaps:
-            summary.views[view.name].problems[UNRECORDED] = gaps
-    return summary
+def publish(path: Path, session: zenoh.Session, rate: float = 1.0, run: str | None = None,
+            wait_s: float = 10.0, stop: threading.Event | None = None,
+            notice: Notice | None = None) -> PublishSummary:
+    """Re-publish the run's recorded chunks and specs at the recorded pacing (log times
+    divided by `rate`; 0: as fast as possible) with the simulation's QoS. Waits up to wait_s
+    for a subscriber of the run's chunks (a render server) before the first chunk. A
+    truncated or damaged log is re-published up to its last complete chunk and said once to
+    `notice` (default: a line on stderr)."""
+    notes: list[LogNote] = []
+    try:
+        return republish(path, session, rate, run, wait_s, stop, notes)
+    finally:
+        say_notes(notes, notice or notice_on_stderr("minority replay"))
 
 
 class VtkSeries:
@@ -362,80 +128,3 @@ class VtkSeries:
         pvd = self.directory / f"{self.stem}.pvd"
         pvd.write_text("\n".join(lines))
         return pvd
-
-
-@dataclass
-class PublishSummary:
-    run: str
-    chunks: int = 0
-    specs: int = 0
-    wall_s: float = 0.0
-    log_s: float = 0.0  # span of log time re-published, s
-
-
-def publish(path: Path, session: zenoh.Session, rate: float = 1.0, run: str | None = None,
-            wait_s: float = 10.0, stop: threading.Event | None = None,
-            notice: Notice | None = None) -> PublishSummary:
-    """Re-publish the run's recorded chunks and specs at the recorded pacing (log times
-    divided by `rate`; 0: as fast as possible) with the simulation's QoS. Waits up to wait_s
-    for a subscriber of the run's chunks (a render server) before the first chunk. A
-    truncated or damaged log is re-published up to its last complete chunk and said once to
-    `notice` (default: a line on stderr)."""
-    notes: list[LogNote] = []
-    try:
-        return _publish(path, session, rate, run, wait_s, stop, notes)
-    finally:
-        say_notes(notes, notice or notice_on_stderr("minority replay"))
-
-
-def _publish(path: Path, session: zenoh.Session, rate: float, run: str | None, wait_s: float,
-             stop: threading.Event | None, notes: list[LogNote]) -> PublishSummary:
-    run = log_run(path, log_specs(path, notes), run, notes)
-    stop = stop or threading.Event()
-    summary = PublishSummary(run)
-    start_wall = start_log = None
-    matched = False
-    for record in read_log_noting(path, notes,
-                                  [keys.spec(run), f"{keys.ROOT}/{run}/{keys.Topic.CHUNK}"]):
-        if start_log is None:
-            start_wall, start_log = time.monotonic(), record.log_ns
-        if rate > 0:
-            due = start_wall + (record.log_ns - start_log) * 1e-9 / rate
-            if stop.wait(max(0.0, due - time.monotonic())):
-                break
-        if stop.is_set():
-            break
-        try:
-            message = record.decode()  # validated as the server will
-        except ProtocolError:
-            continue
-        if isinstance(message, Chunk):
-            key = keys.chunk(run, message.step, message.rank)
-            if not matched:
-                matched = _wait_for_subscriber(session, key, wait_s)
-                if not matched:
-                    raise NoServer(f"no render server subscribes to {key} within {wait_s:g} s "
-                                      f"(start `minority serve` with a spec of run {run!r})")
-            put(session, key, bytearray(record.data), REPLAY_QOS)  # sent stamp renewed
-            summary.chunks += 1
-        else:
-            put(session, keys.spec(run), message.encode(), CONTROL_QOS)
-            summary.specs += 1
-        summary.log_s = (record.log_ns - start_log) * 1e-9
-    summary.wall_s = 0.0 if start_wall is None else time.monotonic() - start_wall
-    if summary.chunks == 0 and not stop.is_set():
-        raise ReplayError(f"{path}: no chunks of run {run!r} recorded")
-    return summary
-
-
-def _wait_for_subscriber(session: zenoh.Session, key: str, wait_s: float) -> bool:
-    """Whether a subscriber of `key` is known within wait_s seconds (a matching listener)."""
-    found = threading.Event()
-    pub = session.declare_publisher(key, congestion_control=REPLAY_QOS.congestion,
-                                    priority=REPLAY_QOS.priority)
-    listener = pub.declare_matching_listener(lambda status: status.matching and found.set())
-    try:
-        return pub.matching_status.matching or found.wait(wait_s)
-    finally:
-        listener.undeclare()
-        pub.undeclare()

@@ -244,3 +244,38 @@ def test_occlusion_culled_logs_serve_only_the_views_that_were_culled_for():
     assert "occlusion_cull" in missing_data(moved, moved.views[0], step, old)
     bigger = make_spec(view("bigger", TOP, width=96))
     assert "occlusion_cull" in missing_data(bigger, bigger.views[0], step, old)
+
+
+def test_a_log_without_a_spec_names_its_run_from_its_chunks(tmp_path, capsys):
+    """Regression: log_run took the run of a log holding no spec from its first chunk with
+    keys.parse (a key parser), which returns None for the log topic `minority/{run}/chunk`:
+    `replay --vtk` or `--publish` of a sim-only log crashed with an AttributeError, and a
+    plain replay with a traceback instead of "pass --spec"."""
+    from minority.protocol.log import LogWriter
+
+    from minority.replay import log_run
+
+    path = tmp_path / "sim-only.mcap"
+    with LogWriter(path) as log:
+        for step in (0, 20):
+            for rank in range(2):
+                log.write(chunk(step, rank))
+    assert log_run(path, log_specs(path)) == RUN
+    summary = replay(path, out=None)  # assembles, renders nothing
+    assert summary.run == RUN and summary.steps == 2 and not summary.incomplete
+    with pytest.raises(ValueError, match=f"no spec of run '{RUN}' is recorded; pass --spec"):
+        replay(path, out=tmp_path / "frames")
+    assert main(["replay", str(path), "-q"]) == 2
+    assert "pass --spec" in capsys.readouterr().err
+
+
+def test_replay_reads_the_same_steps_from_a_log_cut_short(recorded, tmp_path):
+    """A complete log is read through its index, a cut one front to back: the steps agree."""
+    whole = recorded / "run.mcap"
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:-20])  # the footer gone: no summary, read front to back
+    said = []
+    a, b = replay(whole, out=None), replay(cut, out=None, notice=said.append)
+    assert (a.run, a.steps, a.incomplete) == (b.run, b.steps, b.incomplete) and a.steps == 4
+    assert not a.log_notes and [n.kind for n in b.log_notes] == ["truncated"] and len(said) == 1

@@ -3,7 +3,7 @@ VTK series for ParaView, or re-publish it to a running render server.
 
 The re-rendering (and what a new spec may ask that the log does not hold) is
 render_server.rerender's; the re-publishing protocol.republish's. This module wires them
-to the command: warnings on stderr, the VTK writer.
+to the command: warnings on stderr.
 """
 
 from __future__ import annotations
@@ -11,9 +11,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
-import numpy as np
 import zenoh
 
 from minority.protocol.logread import LogNote
@@ -25,7 +23,7 @@ from minority.protocol.republish import (  # noqa: F401 - the command's names, a
 )
 from minority.protocol.runlog import RunLogError, log_run, log_specs  # noqa: F401 - as before
 from minority.protocol.spec import Spec
-from minority.render_server.assemble import AssembledStep
+from minority.protocol.vtkseries import VtkSeries  # noqa: F401 - as before
 from minority.render_server.rerender import (  # noqa: F401 - the command's names, as before
     MAX_PENDING_STEPS,
     SHOWN_STEPS,
@@ -52,9 +50,8 @@ def replay(path: Path, spec: Spec | None = None, out: Path | None = None,
     A truncated or damaged log replays up to its last complete chunk, said once to `notice`
     (default: a line on stderr) and in the summary."""
     notes: list[LogNote] = []
-    export = None if vtk is None else (lambda run_: VtkSeries(vtk, run_))
     try:
-        summary = rerender(path, spec, out, export, run, shadows, progress, notes)
+        summary = rerender(path, spec, out, vtk, run, shadows, progress, notes)
     finally:
         say_notes(notes, notice or notice_on_stderr("minority replay"))
     summary.log_notes = notes
@@ -74,57 +71,3 @@ def publish(path: Path, session: zenoh.Session, rate: float = 1.0, run: str | No
         return republish(path, session, rate, run, wait_s, stop, notes)
     finally:
         say_notes(notes, notice or notice_on_stderr("minority replay"))
-
-
-class VtkSeries:
-    """Steps as a VTK series for ParaView: {stem}_{step:06d}.vtp (points, one vertex cell per
-    particle, every field as point data, TimeValue s) and {stem}.pvd with the simulated times."""
-
-    def __init__(self, directory: Path, stem: str):
-        self.directory, self.stem = Path(directory), stem
-        self.directory.mkdir(parents=True, exist_ok=True)
-        self.entries: list[tuple[float, str]] = []
-
-    def add(self, step: AssembledStep) -> Path:
-        from vtkmodules.util.numpy_support import numpy_to_vtk
-        from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkPoints
-        from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
-        from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
-
-        n = len(step.positions)
-        poly, pts, verts = vtkPolyData(), vtkPoints(), vtkCellArray()
-        pts.SetData(numpy_to_vtk(np.ascontiguousarray(step.positions), deep=True))
-        verts.SetData(numpy_to_vtk(np.arange(n + 1, dtype=np.int64), deep=True),
-                      numpy_to_vtk(np.arange(n, dtype=np.int64), deep=True))
-        poly.SetPoints(pts)
-        poly.SetVerts(verts)
-        for name, values in step.fields.items():
-            array = numpy_to_vtk(np.ascontiguousarray(values), deep=True)
-            array.SetName(name)
-            poly.GetPointData().AddArray(array)
-        t = vtkDoubleArray()
-        t.SetName("TimeValue")
-        t.InsertNextValue(step.time_s)
-        poly.GetFieldData().AddArray(t)
-        name = f"{self.stem}_{step.step:06d}.vtp"
-        w = vtkXMLPolyDataWriter()
-        w.SetFileName(str(self.directory / name))
-        w.SetInputData(poly)
-        w.SetDataModeToAppended()
-        w.EncodeAppendedDataOff()
-        if not w.Write():
-            raise OSError(f"cannot write {self.directory / name}")
-        self.entries.append((step.time_s, name))
-        return self.directory / name
-
-    def close(self) -> Path:
-        """Write {stem}.pvd listing the files by simulated time (s)."""
-        lines = ['<?xml version="1.0"?>',
-                 '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-                 "  <Collection>"]
-        lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>'
-                  for t, f in sorted(self.entries)]
-        lines += ["  </Collection>", "</VTKFile>", ""]
-        pvd = self.directory / f"{self.stem}.pvd"
-        pvd.write_text("\n".join(lines))
-        return pvd

@@ -24,7 +24,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 from minority.protocol import keys
@@ -32,6 +31,7 @@ from minority.protocol.logread import LogNote, read_log_noting
 from minority.protocol.runlog import RunLogError, log_run, log_specs
 from minority.protocol.spec import ID_FIELD, Region, Spec, View
 from minority.protocol.view import INSTANT_TOLERANCE
+from minority.protocol.vtkseries import VtkSeries
 from minority.render_server.assemble import AssembledStep, StepAssembler
 from minority.render_server.frames import render_views
 
@@ -39,14 +39,6 @@ Topic = keys.Topic
 MAX_PENDING_STEPS = 64  # steps assembled at once; past that the oldest is released incomplete
 SHOWN_STEPS = 8  # steps listed per reported problem
 UNRECORDED = "the new schedule wants them and the log does not hold them"
-
-
-class StepSeries(Protocol):
-    """Where assembled steps are exported (a VTK series): add each, close once."""
-
-    def add(self, step: AssembledStep) -> Path: ...
-
-    def close(self) -> Path: ...
 
 
 @dataclass
@@ -195,13 +187,13 @@ def unrecorded(view: View, steps: list[tuple[int, float, float | None]]) -> list
 
 
 def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
-             export: Callable[[str], StepSeries] | None = None, run: str | None = None,
-             shadows: bool = False, progress: Callable[[str], None] | None = None,
+             vtk: Path | None = None, run: str | None = None, shadows: bool = False,
+             progress: Callable[[str], None] | None = None,
              notes: list[LogNote] | None = None) -> ReplaySummary:
     """Re-render the log at `path` into out/{view}/{step:06d}.png (out None: render nothing)
-    with `spec` (None: the log's last spec of the run), and hand every assembled step to the
-    series `export(run)` makes (closed at the end: its path is the summary's vtk). A
-    truncated or damaged log replays up to its last complete chunk, noted in `notes`."""
+    with `spec` (None: the log's last spec of the run), and/or export its steps to a VTK
+    series in `vtk` ({run}_{step:06d}.vtp, {run}.pvd). A truncated or damaged log replays
+    up to its last complete chunk, noted in `notes`."""
     specs = log_specs(path, notes)
     run = log_run(path, specs, run, notes)
     own = [s for s in specs if s.run == run]
@@ -215,7 +207,7 @@ def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
     if shadows and out is not None and culled and progress is not None:
         progress(f"note: the recorded views {', '.join(culled)} had occlusion_cull: the log "
                  "lacks the hidden particles, so their shadows are missing")
-    series = export(run) if export is not None else None
+    series = VtkSeries(vtk, run) if vtk is not None else None
     assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
     canvases: dict = {}
     seen: list[tuple[int, float, float | None]] = []

@@ -1,24 +1,12 @@
 """The MPM sweep behind the GNS dataset: its config and the scenes it plans (geometry and
-friction drawn per split, deterministic in the config's seed). minority.sweep runs them.
-
-scene_toml, complete and run_sweep, marked "superseded", are the old runner (a `python -m
-minority sim` subprocess per scene, scenes from column_template.toml); they stay until
-`minority oracle dataset` calls minority.sweep.run_sweep, then go with the template.
-"""
+friction drawn per split, deterministic in the config's seed). minority.sweep runs them."""
 
 from __future__ import annotations
 
-import math
-import os
-import subprocess
-import sys
-import time
 import tomllib
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 from minority.gns.dataset import COARSE_GRAIN_METHODS
 
@@ -49,7 +37,6 @@ class ScenePlan:
 @dataclass
 class SweepConfig:
     path: Path
-    template: str  # superseded (the old runner's scene template text; "" when not named)
     seed: int
     duration_s: float
     output_interval_s: float
@@ -75,8 +62,6 @@ def _read(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     """The config's tables; `extends = "base.toml"` starts from that file's (relative to this
     one), each table of this file updating the base's key by key, `[[extra]]` appended."""
     raw = tomllib.loads(path.read_text())
-    if "template" in raw:  # relative to the file that names it
-        raw["template"] = str(path.parent / raw["template"])
     base_name = raw.pop("extends", None)
     if base_name is None:
         return raw
@@ -97,8 +82,7 @@ def load_config(path: str | Path) -> SweepConfig:
     path = Path(path)
     try:
         raw = _read(path)
-        template = Path(raw["template"]).read_text() if "template" in raw else ""
-        cfg = SweepConfig(path=path, template=template, seed=int(raw["seed"]),
+        cfg = SweepConfig(path=path, seed=int(raw["seed"]),
                           duration_s=float(raw["duration_s"]),
                           output_interval_s=float(raw["output_interval_s"]),
                           stride=int(raw["stride"]),
@@ -199,58 +183,6 @@ def plan(cfg: SweepConfig) -> list[ScenePlan]:
             float(named.get("domain_length_m", g["domain_length_m"])),
             _count(named["length_m"], named["width_m"], named["height_m"], s)))
     return plans
-
-
-def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:  # superseded: minority.sweep
-    return cfg.template.format(
-        cell_size_m=float(cfg.geometry["cell_size_m"]) / cfg.coarse_grain,
-        name=p.name, domain_length_m=p.domain_length_m, width_m=p.width_m,
-        friction_angle_deg=p.friction_angle_deg, length_m=p.length_m, height_m=p.height_m,
-        duration_s=cfg.duration_s, output_interval_s=cfg.output_interval_s)
-
-
-def complete(h5_path: Path, duration_s: float, interval_s: float) -> bool:  # superseded
-    """True if h5_path holds every frame of a finished run."""
-    want = int(math.floor(duration_s / interval_s + 1e-9)) + 1
-    try:
-        with h5py.File(h5_path, "r") as f:
-            return len(f["time"]) >= want
-    except (OSError, KeyError):
-        return False
-
-
-def run_sweep(cfg: SweepConfig, out_dir: str | Path, *, jobs: int = 1, threads: int = 1,
-              log=sys.stderr) -> list[tuple[ScenePlan, Path]]:  # superseded: minority.sweep
-    """Run every planned scene not already complete in out_dir; return (plan, HDF5 path)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    plans = plan(cfg)
-    todo = []
-    for p in plans:
-        (out / f"{p.name}.toml").write_text(scene_toml(cfg, p))
-        if not complete(out / f"{p.name}.h5", cfg.duration_s, cfg.output_interval_s):
-            todo.append(p)
-    print(f"sweep: {len(plans)} scenes, {len(plans) - len(todo)} already done, running "
-          f"{len(todo)} ({jobs} at a time, {threads} thread(s) each) in {out}", file=log,
-          flush=True)
-    env = dict(os.environ, NUMBA_NUM_THREADS=str(threads))
-    t0, done = time.perf_counter(), 0
-
-    def run_one(p: ScenePlan) -> None:
-        cmd = [sys.executable, "-m", "minority", "sim", str(out / f"{p.name}.toml"),
-               "--out", str(out / f"{p.name}.h5"), "--threads", str(threads), "--no-publish",
-               "-q"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
-        if proc.returncode != 0:
-            raise SweepError(f"scene {p.name} failed: {proc.stderr.strip()[-500:]}")
-
-    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for p, _ in zip(todo, pool.map(run_one, todo), strict=False):
-            done += 1
-            print(f"sweep: {done}/{len(todo)} {p.name} ({p.particles} particles, a = "
-                  f"{p.aspect_ratio:.2f}, phi = {p.friction_angle_deg:.1f} deg) "
-                  f"{time.perf_counter() - t0:.0f} s", file=log, flush=True)
-    return [(p, out / f"{p.name}.h5") for p in plans]
 
 
 def plans_table(plans: list[ScenePlan]) -> list[dict]:

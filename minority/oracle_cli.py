@@ -73,7 +73,8 @@ def _dataset_parser(osub) -> None:
 
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from minority.gns.dataset import DatasetError, build
-    from minority.gns.sweep import SweepError, load_config, run_sweep
+    from minority.gns.sweep import SweepError, load_config
+    from minority.sweep import run_sweep
 
     try:
         cfg = load_config(args.config)
@@ -284,24 +285,17 @@ def _ship_parser(osub) -> None:
                 description="Write the checkpoint the repository ships: weights, model config, "
                             "statistics, history; no optimizer state.")
     q.add_argument("checkpoint", type=Path, help="checkpoint from minority oracle train")
-    add_out(q, "the shipped checkpoint (required)", metavar="OUT.pt")
-    # deprecated spelling `ship CHECKPOINT OUT`, kept hidden for older scripts
-    q.add_argument("out_operand", nargs="?", type=Path, help=argparse.SUPPRESS)
+    add_out(q, "the shipped checkpoint", metavar="OUT.pt", required=True)
     q.set_defaults(func=_cmd_ship)
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
     from minority.gns.train import CheckpointError, ship
 
-    if args.out and args.out_operand and args.out != args.out_operand:
-        args._parser.error("give the output once, as -o/--out")
-    out = args.out or args.out_operand
-    if out is None:
-        args._parser.error("the following arguments are required: -o/--out")
     if (status := missing("oracle ship", args.checkpoint)) is not None:
         return status
     try:
-        out = ship(args.checkpoint, out)
+        out = ship(args.checkpoint, args.out)
     except CheckpointError as exc:
         return _fail("ship", exc, BAD_INPUT)
     except (OSError, ValueError, RuntimeError) as exc:

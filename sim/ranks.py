@@ -59,8 +59,9 @@ def relaunch(ranks: int, argv: list[str]) -> int:
     """Run `python -m minority ARGV` under `mpiexec -n ranks`; returns its exit status."""
     mpiexec = mpiexec_path()
     if mpiexec is None:
-        print("minority sim: error: --ranks needs mpiexec (pip install mpich), none found next "
-              f"to {sys.executable} or on PATH", file=sys.stderr)
+        print("minority sim: error: --ranks needs mpiexec, none found next to "
+              f"{sys.executable} or on PATH: pip install 'minority[mpi]' (the mpich wheel), or "
+              "use the site's MPI (README, \"A cluster's own MPI\")", file=sys.stderr)
         return 1
     env = {**RELAUNCH_ENV, **os.environ}
     cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "minority", *argv]

@@ -17,7 +17,11 @@ from minority.protocol.session import NetworkOptions, Role, open_session
 
 def pytest_configure(config) -> None:
     """Servers' credentials (protocol.auth) go to a directory of this test session, never the
-    user's own (subprocesses inherit it)."""
+    user's own (subprocesses inherit it); numba caches of edited kernels are dropped first, as
+    the `minority` command does."""
+    from minority.cli import drop_stale_numba_caches
+
+    drop_stale_numba_caches()
     config._minority_credentials = tempfile.mkdtemp(prefix="minority-credentials-")
     os.environ[CREDENTIALS_ENV] = config._minority_credentials
 

@@ -306,7 +306,7 @@ def bad_checkpoints(tmp_path) -> dict:
 def test_oracle_refuses_what_is_not_a_checkpoint(tmp_path, capsys):
     for name, message in bad_checkpoints(tmp_path).items():
         path = tmp_path / name
-        for step, argv in (("ship", ["ship", str(path), str(tmp_path / "shipped.pt")]),
+        for step, argv in (("ship", ["ship", str(path), "-o", str(tmp_path / "shipped.pt")]),
                            ("rollout", ["rollout", str(path), "tiny",
                                         "--out", str(tmp_path / "rollout")])):
             status, out, err = run_cli(capsys, ["oracle", *argv])
@@ -322,6 +322,6 @@ def test_checkpoint_whose_weights_do_not_fit_its_config(tmp_path, capsys):
     ckpt["model_config"] = {**ckpt["model_config"], "latent": ckpt["model_config"]["latent"] // 2}
     torch.save(ckpt, tmp_path / "mismatch.pt")
     status, _, err = run_cli(capsys, ["oracle", "ship", str(tmp_path / "mismatch.pt"),
-                                      str(tmp_path / "shipped.pt")])
+                                      "-o", str(tmp_path / "shipped.pt")])
     assert status == 2 and "size mismatch" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "shipped.pt").exists()

@@ -169,7 +169,7 @@ def test_cli_writes_a_router_config(tmp_path, capsys):
         [A], shared=(), loopback_readers=False, usernames=False)
     assert deploy_cli.main(["acl", "--run", "a/b"]) == 2
     assert "run" in capsys.readouterr().err
-    assert deploy_cli.main(["acl", "--run", A, "--router", str(tmp_path / "missing.json5")]) == 1
+    assert deploy_cli.main(["acl", "--run", A, "--router", str(tmp_path / "missing.json5")]) == 2
 
 
 def test_cli_hooks_into_a_subparsers_object():

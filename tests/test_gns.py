@@ -106,10 +106,7 @@ def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, cap
 
     from minority import sweep
 
-    # the sweep oracle_cli runs: minority.sweep's, or gns.sweep's old one until it goes
-    for module in (sweep, gns_sweep):
-        if hasattr(module, "run_sweep"):
-            monkeypatch.setattr(module, "run_sweep", fake_sweep)
+    monkeypatch.setattr(sweep, "run_sweep", fake_sweep)
     rc = main(["oracle", "dataset", "--config", str(SWEEP), "--runs", str(tmp_path / "r"),
                "--out", str(tmp_path / "d"), "--extra-train", "3", "--extra-valid", "1"])
     assert rc == 1 and "stop before running" in capsys.readouterr().err
@@ -470,7 +467,7 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
         assert (out / "vtk" / "rollout.pvd").exists()
     else:  # an untrained model may leave the domain: then the error names the frame
         assert "rollout diverged at frame" in p.stderr, p.stderr
-    p = subprocess.run(run + ["ship", str(ck), str(tmp_path / "s.pt")], capture_output=True,
+    p = subprocess.run(run + ["ship", str(ck), "-o", str(tmp_path / "s.pt")], capture_output=True,
                        text=True, timeout=60)
     assert p.returncode == 0, p.stderr
     shipped = torch.load(tmp_path / "s.pt", weights_only=True)
@@ -478,7 +475,7 @@ def test_cli_train_rollout_evaluate(dataset, tmp_path):
     assert (tmp_path / "s.pt").stat().st_size < ck.stat().st_size
     p = subprocess.run(run + ["rollout", str(tmp_path / "missing.pt"), "tiny"],
                        capture_output=True, text=True, timeout=60)
-    assert p.returncode == 1 and "missing.pt" in p.stderr
+    assert p.returncode == 2 and "missing.pt" in p.stderr
 
 
 def test_deepen_appends_identity_steps_that_then_learn():

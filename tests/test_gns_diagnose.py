@@ -123,7 +123,7 @@ def test_cli_diagnose(tmp_path):
     assert "ratio 0.50" in p.stderr
     p = subprocess.run(cmd[:-4] + ["--scene", "nope"], capture_output=True, text=True,
                        timeout=120)
-    assert p.returncode == 1 and "no scene ['nope']" in p.stderr
+    assert p.returncode == 2 and "no scene ['nope']" in p.stderr
     p = subprocess.run(cmd[:-4] + ["--bands", "6-12"], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 2 and "F0:F1" in p.stderr

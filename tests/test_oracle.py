@@ -150,7 +150,7 @@ def test_cli_writes_spec_and_cameras(tmp_path):
     assert read_pvcc(tmp_path / "cams" / "top.pvcc")[0] == spec.views[1].camera
     bad = subprocess.run([sys.executable, "-m", "minority", "oracle", "spec", str(out)],
                          capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 1 and "cannot read the rollout" in bad.stderr
+    assert bad.returncode == 2 and "cannot read the rollout" in bad.stderr
 
 
 def test_preview_contact_sheet(tmp_path):

@@ -226,8 +226,8 @@ def test_score_of_a_truncated_log(tmp_path, capsys):
 
 def report_log(path, damage: str = "truncated", timings: bool = True):
     """A run of 4 steps (a spec, 2 chunks and a timing each) in flushed chunks, without its
-    footer and "truncated" (cut inside its last chunk) or "damaged" (a byte in the middle
-    inverted)."""
+    footer and "truncated" (cut inside its last chunk) or "damaged" (a byte inverted in the
+    middle of the MCAP chunk of step 20's first chunk, so step 0 and its timing come before)."""
     spec = Spec.from_dict(spec_dict())
     messages = [spec]
     for step in (0, 20, 40, 60):
@@ -238,8 +238,9 @@ def report_log(path, damage: str = "truncated", timings: bool = True):
     if damage == "truncated":
         write_cut_log(path, messages)
     else:
+        before, through = (len(write_flushed_log(path, messages[:k])) for k in (4, 5))
         data = bytearray(write_flushed_log(path, messages))
-        data[len(data) // 2] ^= 0xFF
+        data[(before + through) // 2] ^= 0xFF
         path.write_bytes(bytes(data))
     return path
 

@@ -275,7 +275,12 @@ class Spec:
         if len(data) > MAX_SPEC_FILE_BYTES:
             raise SpecError(f"{path}: larger than {MAX_SPEC_FILE_BYTES} bytes "
                             "(MAX_SPEC_FILE_BYTES), not a spec")
-        return cls.from_dict(loads_json(data, str(path)))
+        try:
+            return cls.from_dict(loads_json(data, str(path)))
+        except SpecError as exc:
+            if str(exc).startswith(f"{path}: "):
+                raise
+            raise SpecError(f"{path}: {exc}") from None
 
 
 def render_radius_m(spec: Spec | None, spacing_m: float) -> float:

@@ -1,6 +1,7 @@
 """Spec validation names the bad field; files and wire round-trip."""
 
 import copy
+import json
 import math
 
 import pytest
@@ -106,6 +107,12 @@ def test_sphere_radius_round_trips():
     spec = Spec.from_dict(d)
     assert spec.sphere_radius_m == 0.004 and Spec.from_dict(spec.to_dict()) == spec
     assert make_spec().sphere_radius_m is None and "sphere_radius_m" not in make_spec().to_dict()
+
+
+def test_a_bad_field_in_a_file_names_the_file_and_the_field(tmp_path):
+    (tmp_path / "s.json").write_text(json.dumps(with_change("views.0.colormap", "Jett")))
+    with pytest.raises(SpecError, match=rf"^{tmp_path / 's.json'}: views\[0\].colormap: 'Jett'"):
+        Spec.load(tmp_path / "s.json")
 
 
 def test_bad_json_file(tmp_path):

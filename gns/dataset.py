@@ -125,9 +125,10 @@ def _stats(trajs: list[np.ndarray]) -> dict:
 
 def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
           connectivity_radius_m: float, config_path: str = "", coarse_grain: int = 1,
-          coarse_grain_method: str = "mean", log=sys.stderr) -> dict:
+          coarse_grain_method: str = "mean", log=None) -> dict:
     """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir, coarse-grained by
     `coarse_grain` (1: as run) with `coarse_grain_method`; return the metadata."""
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}

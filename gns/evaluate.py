@@ -12,12 +12,13 @@ from minority.gns.rollout import RolloutError, rollout
 
 
 def evaluate(model, dataset, split: str = "test", *, device: str = "cpu",
-             names: list[str] | None = None, log=sys.stderr) -> list[dict]:
+             names: list[str] | None = None, log=None) -> list[dict]:
     """One row per scene: deposit measures of both, relative errors, mean position error (m)
     over the predicted frames (not the C+1 MPM frames it starts from), rollout wall time (s).
     The rollout starts from the scene's first C+1 MPM frames and runs to its last frame.
     Scenes of a coarse-grained dataset are also scored against their MPM run at its own
     resolution (mpm_full, relative_error_full): the run the model is the oracle of."""
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     c1 = model.config.input_velocities + 1
     meta = load_metadata(dataset)
     full = {sc["name"]: Deposit(**sc["mpm_deposit"]) for sc in meta["scenes"]

@@ -88,11 +88,12 @@ def initial_state(scene_toml: str | Path, spacing_m: float, frame_interval_s: fl
 
 def rollout(model, positions: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
             frames: int, *, device: str = "cpu", progress: bool = False,
-            log=sys.stderr) -> tuple[np.ndarray, dict]:
+            log=None) -> tuple[np.ndarray, dict]:
     """Predict `frames` frames after the C+1 given ones ([C+1, n, 3], m).
 
     Returns all frames [C+1+frames, n, 3] float32 and {graph_s, model_s, clamped} (clamped:
     particle positions put back on a domain face, summed over frames)."""
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     c1 = model.config.input_velocities + 1
     if positions.shape[0] < c1:
         raise ValueError(f"rollout needs {c1} initial frames, got {positions.shape[0]}")

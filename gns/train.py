@@ -222,7 +222,7 @@ def _batch(windows, device):
 
 def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: TrainConfig, *,
           resume: str | Path | None = None, init: str | Path | None = None,
-          deepen_to: int | None = None, device: str | None = None, log=sys.stderr) -> Path:
+          deepen_to: int | None = None, device: str | None = None, log=None) -> Path:
     """Train; write out (the latest checkpoint) and out with suffix .best.pt (best val).
 
     resume: continue a run (weights, optimizer, step, history). init: start from a
@@ -231,6 +231,7 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     that the weights keep their meaning. deepen_to (with init): append identity
     message-passing steps up to this many (gns.model.deepen).
     """
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     if resume and init:
         raise ValueError("give --resume or --init, not both")
     if deepen_to is not None and not init:

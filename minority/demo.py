@@ -69,7 +69,8 @@ def free_port() -> int:
 class Steps:
     """Prints each stage with its wall time."""
 
-    def __init__(self, log=sys.stderr):
+    def __init__(self, log=None):
+        log = sys.stderr if log is None else log  # the stream of the call, not of the import
         self.log, self.t0 = log, time.perf_counter()
 
     def __call__(self, text: str) -> None:

@@ -56,7 +56,8 @@ def _dataset_parser(osub) -> None:
                             "valid / test by scene, held-out aspect ratios and friction angles "
                             "in test), run each with `minority sim` (finished runs are kept and "
                             "skipped), pack the dataset.")
-    q.add_argument("--config", type=_existing, default=DEFAULT_SWEEP, help="sweep config TOML")
+    q.add_argument("--config", type=_existing,
+                   help="sweep config TOML (default: the shipped gns/configs/column_sweep.toml)")
     q.add_argument("--runs", type=Path, default=Path("data/sweep"), metavar="DIR",
                    help="where the MPM runs go")
     add_out(q, "dataset directory", default=Path("data/dataset"), metavar="DIR")
@@ -77,6 +78,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     from minority.sweep import run_sweep
 
     try:
+        args.config = args.config or DEFAULT_SWEEP
         cfg = load_config(args.config)
         for key in ("extra_train", "extra_valid"):
             if getattr(args, key) is not None:

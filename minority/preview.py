@@ -54,8 +54,9 @@ class RolloutStep:
 
 
 def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, spacing_m: float,
-                  columns: int = 6, thumb_width: int = 256, log=sys.stderr) -> Image.Image:
+                  columns: int = 6, thumb_width: int = 256, log=None) -> Image.Image:
     """positions [frames, n, 3] (m) -> the sheet: a row per view, up to `columns` frames."""
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     time_s = np.arange(len(positions)) * frame_interval_s
     ids = np.arange(positions.shape[1])  # rollout rows: decimation picks id % k == 0
     rows = []

@@ -72,10 +72,11 @@ def run_scene(scene_path: Path, out_path: Path, threads: int) -> None:
 
 
 def run_sweep(cfg: SweepConfig, out_dir: str | Path, *, jobs: int = 1, threads: int = 1,
-              log=sys.stderr) -> list[tuple[ScenePlan, Path]]:
+              log=None) -> list[tuple[ScenePlan, Path]]:
     """Run every planned scene not already complete in out_dir, `jobs` at a time with
     `threads` numba threads each; return (plan, HDF5 path) of every scene. Writes
     out_dir/{scene}.toml and out_dir/{scene}.h5."""
+    log = sys.stderr if log is None else log  # the stream of the call, not of the import
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plans = plan(cfg)

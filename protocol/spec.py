@@ -33,7 +33,15 @@ import numpy as np
 from minority.protocol import check
 from minority.protocol.check import Name, NonNegative, Positive, Vec3
 from minority.protocol.errors import SpecError
-from minority.protocol.view import Camera, InlineColormap, View, ViewDocument, Window, one_window_shorthand
+from minority.protocol.view import (
+    Camera,
+    InlineColormap,
+    View,
+    ViewDocument,
+    Window,
+    one_window_shorthand,
+    shorthand_paths,
+)
 from minority.protocol.wire import MAX_HEADER_BYTES, Envelope, MessageKind, encode
 
 SPEC_VERSION = 2
@@ -55,10 +63,6 @@ class Region(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     name: Name
     lo_m: Vec3
     hi_m: Vec3
-
-    @classmethod
-    def from_dict(cls, obj, where: str) -> Region:
-        return check.convert(obj, cls, where, SpecError).checked(where)
 
     def checked(self, where: str) -> Region:
         if not all(a <= b for a, b in zip(self.lo_m, self.hi_m, strict=True)):
@@ -218,17 +222,18 @@ class Spec:
             if version not in READS_VERSIONS:
                 raise SpecError(f"version: spec version {version} is not supported "
                                 f"(this build reads {', '.join(map(str, READS_VERSIONS))})")
-        flat: list[int] = []
+        flat: list[str] = []  # the views given in the one-window shorthand
         if isinstance(obj, dict) and isinstance(obj.get("views"), list):
-            obj = {**obj, "views": [dict(v) if isinstance(v, dict) else v for v in obj["views"]]}
-            flat = one_window_shorthand(obj["views"])
+            views = []
+            for i, view in enumerate(obj["views"]):
+                views.append(one_window_shorthand(view, f"views[{i}]"))
+                if views[-1] is not view:
+                    flat.append(f"views[{i}]")
+            obj = {**obj, "views": views}
         try:
             return cls.from_document(check.convert(obj, SpecDocument, "", SpecError, "spec"), sent_ns)
         except SpecError as exc:
-            text = str(exc)
-            for i in flat:  # name the view, where its one window's keys are
-                text = text.replace(f"views[{i}].schedule[0]", f"views[{i}]", 1)
-            raise SpecError(text) from None
+            raise shorthand_paths(exc, flat) from None
 
     @classmethod
     def from_document(cls, s: SpecDocument, sent_ns: int = 0) -> Spec:
@@ -275,11 +280,10 @@ class Spec:
         if len(data) > MAX_SPEC_FILE_BYTES:
             raise SpecError(f"{path}: larger than {MAX_SPEC_FILE_BYTES} bytes "
                             "(MAX_SPEC_FILE_BYTES), not a spec")
+        obj = loads_json(data, str(path))
         try:
-            return cls.from_dict(loads_json(data, str(path)))
+            return cls.from_dict(obj)
         except SpecError as exc:
-            if str(exc).startswith(f"{path}: "):
-                raise
             raise SpecError(f"{path}: {exc}") from None
 
 

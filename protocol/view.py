@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 from typing import Annotated, Literal
 
 import msgspec
@@ -33,6 +34,7 @@ Stride = Annotated[int, msgspec.Meta(ge=1)]
 ColormapName = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
 
 
+@cache
 def matplotlib_colormaps() -> frozenset[str]:
     from matplotlib import colormaps  # only when a name is not a ParaView preset
 
@@ -232,21 +234,27 @@ class ViewDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 ONE_WINDOW_KEYS = ("t_start_s", "t_end_s", "every_steps", "every_s", "regions")
 
 
-def one_window_shorthand(views, where: str = "views") -> list[int]:
-    """Rewrite, in place, each view object of the JSON list `views` that gives its one window's
-    keys (ONE_WINDOW_KEYS) on the view itself (version 1's form) as a schedule of that window;
-    the indices of the views rewritten."""
-    rewritten = []
-    for i, v in enumerate(views if isinstance(views, list) else []):
-        flat = [k for k in ONE_WINDOW_KEYS if isinstance(v, dict) and k in v]
-        if not flat:
-            continue
-        if "schedule" in v:
-            raise SpecError(f"{where}[{i}]: give a schedule or the single-window keys "
-                            f"({', '.join(flat)}), not both")
-        v["schedule"] = [{k: v.pop(k) for k in flat}]
-        rewritten.append(i)
-    return rewritten
+def one_window_shorthand(view, where: str):
+    """The JSON view object `view` (at `where`) as version 2 writes it: when it gives its one
+    window's keys (ONE_WINDOW_KEYS) on itself, as version 1 did, a copy with a schedule of
+    that window; anything else as it is."""
+    flat = [k for k in ONE_WINDOW_KEYS if isinstance(view, dict) and k in view]
+    if not flat:
+        return view
+    if "schedule" in view:
+        raise SpecError(f"{where}: give a schedule or the single-window keys "
+                        f"({', '.join(flat)}), not both")
+    return {**{k: v for k, v in view.items() if k not in flat},
+            "schedule": [{k: view[k] for k in flat}]}
+
+
+def shorthand_paths(exc: SpecError, views: list[str]) -> SpecError:
+    """`exc` with the paths into the one window of the shorthand views at `views` (e.g.
+    "views[2].schedule[0].every_s") named where the file has them ("views[2].every_s")."""
+    text = str(exc)
+    for where in views:
+        text = text.replace(f"{where}.schedule[0]", where, 1)
+    return SpecError(text)
 
 
 @dataclass(frozen=True)
@@ -269,10 +277,11 @@ class View:
 
     @classmethod
     def from_dict(cls, obj, where: str) -> View:
-        if isinstance(obj, dict):
-            obj = dict(obj)
-            one_window_shorthand([obj], where)
-        return cls.from_document(check.convert(obj, ViewDocument, where, SpecError), where)
+        v2 = one_window_shorthand(obj, where)
+        try:
+            return cls.from_document(check.convert(v2, ViewDocument, where, SpecError), where)
+        except SpecError as exc:
+            raise shorthand_paths(exc, [where] if v2 is not obj else []) from None
 
     @classmethod
     def from_document(cls, v: ViewDocument, where: str) -> View:

@@ -6,7 +6,7 @@ import math
 
 import pytest
 from conftest import make_spec
-from minority.protocol import Spec, SpecError, Window
+from minority.protocol import Spec, SpecError, View, Window
 
 
 def base() -> dict:
@@ -289,6 +289,11 @@ def test_the_one_window_shorthand_names_the_view_in_errors():
     d["views"][0] = {**view, "t_start_s": 0.1, "every_steps": 5}
     assert Spec.from_dict(d).views[0].schedule == (Window(t_start_s=0.1, every_steps=5),)
     assert d["views"][0]["t_start_s"] == 0.1  # the caller's object is left as it was
+    for bad, message in (({**view, "every_steps": 0}, r"^v\.every_steps: expected int >= 1, got 0"),
+                         ({**view, "every_s": 1.0, "schedule": [{}]},
+                          r"^v: give a schedule or the single-window keys \(every_s\)")):
+        with pytest.raises(SpecError, match=message):
+            View.from_dict(bad, "v")  # one view alone, as a file's views[i]
 
 
 def test_numbers_that_json_cannot_hold_are_refused_from_python_objects_too():

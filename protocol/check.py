@@ -87,6 +87,7 @@ RGB = tuple[Unit, Unit, Unit]
 Name = Annotated[str, msgspec.Meta(pattern=NAME_RE.pattern)]
 Count = Annotated[int, msgspec.Meta(ge=0, le=(1 << 63) - 1)]
 Positive = Annotated[int, msgspec.Meta(ge=1, le=(1 << 63) - 1)]
+Base64 = Annotated[str, msgspec.Meta(extra_json_schema={"contentEncoding": "base64"})]
 
 _NOT_FINITE = re.compile(r"Expected `float` [<>]= -?1\.7976931348623157e\+308")
 _BACKTICKS = re.compile(r"`([^`]*)`")

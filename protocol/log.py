@@ -21,6 +21,7 @@ import threading
 import time
 from pathlib import Path
 
+import msgspec
 import zenoh
 from mcap.writer import CompressionType, Writer
 from minority.protocol import keys
@@ -36,7 +37,7 @@ from minority.protocol.logread import (  # noqa: F401 - the reader's names, impo
     topic_counts,
 )
 from minority.protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
-from minority.protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA
+from minority.protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA, Rejected
 from minority.protocol.session import Inbox
 from minority.protocol.spec import Spec
 from minority.protocol.wire import PREFIX_SIZE, SENT_NS_OFFSET
@@ -144,12 +145,12 @@ class LogWriter:
         sent_ns = 0
         if len(payload) >= PREFIX_SIZE:
             sent_ns = max(0, struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0])
-        record = {"key": str(key)[:1024], "reason": reason, "bytes": len(payload),
-                  "payload_b64": base64.b64encode(payload).decode("ascii")}
+        record = Rejected(str(key)[:1024], reason, len(payload),
+                          base64.b64encode(payload).decode("ascii"))
         with self._lock:
             channel = self._channel(REJECTED_TOPIC, "minority.Rejected", JSON_ENCODING,
                                     {"kind": "rejected"})
-            self._writer.add_message(channel, log_ns, json.dumps(record).encode(), sent_ns)
+            self._writer.add_message(channel, log_ns, msgspec.json.encode(record), sent_ns)
             self.rejected += 1
             self._maybe_flush()
         return REJECTED_TOPIC

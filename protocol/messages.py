@@ -14,7 +14,7 @@ from typing import Annotated, ClassVar, Literal
 import msgspec
 import numpy as np
 from minority.protocol import check
-from minority.protocol.check import Name, NonNegative
+from minority.protocol.check import Base64, Name, NonNegative
 from minority.protocol.errors import ProtocolError
 from minority.protocol.spec import Spec
 from minority.protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
@@ -122,6 +122,27 @@ class Chunk:
                    dict(env.arrays), env.sent_ns, m.prev_time_s)
 
 
+class _Stamp(msgspec.Struct, forbid_unknown_fields=True):
+    sec: Count
+    nsec: Count
+
+
+class CompressedImage(msgspec.Struct, forbid_unknown_fields=True):
+    """A Frame as logged: the fields of Foxglove's CompressedImage (so viewers show frames),
+    then the frame's own."""
+
+    timestamp: _Stamp
+    frame_id: str
+    format: str
+    data: Base64
+    run: Name
+    view: Name
+    step: Count
+    time_s: NonNegative
+    width: Count
+    height: Count
+
+
 @dataclass
 class Frame:
     """A rendered image of one view at one step, PNG-encoded."""
@@ -159,10 +180,9 @@ class Frame:
     def to_json(self) -> dict:
         """foxglove.CompressedImage fields (so MCAP viewers show it) plus our metadata."""
         sec, nsec = divmod(self.sent_ns, 1_000_000_000)
-        return {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": self.view,
-                "format": "png", "data": base64.b64encode(self.png).decode("ascii"),
-                "run": self.run, "view": self.view, "step": self.step, "time_s": self.time_s,
-                "width": self.width, "height": self.height}
+        return check.to_json(CompressedImage(
+            _Stamp(sec, nsec), self.view, "png", base64.b64encode(self.png).decode("ascii"),
+            self.run, self.view, self.step, self.time_s, self.width, self.height))
 
     @classmethod
     def from_json(cls, obj: dict, sent_ns: int = 0) -> Frame:

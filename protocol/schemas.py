@@ -3,12 +3,10 @@ derived from the msgspec types the decoders check with."""
 
 from __future__ import annotations
 
-from typing import Annotated
-
 import msgspec
 from minority.protocol import wire
-from minority.protocol.check import Count, Name, NonNegative
-from minority.protocol.messages import EventMeta, StatsMeta, TimingMeta
+from minority.protocol.check import Base64, Count
+from minority.protocol.messages import CompressedImage, EventMeta, StatsMeta, TimingMeta
 from minority.protocol.spec import SpecDocument
 
 WIRE_ENCODING = "minority-wire-v1"
@@ -19,30 +17,6 @@ prev_time_s (optional: simulated time of the step before, s).
 Chunk arrays: positions [n, 3] <f4 (m, required); other fields [n] or [n, k] with n rows,
 e.g. displacement [n, 3] <f4 (m), velocity [n, 3] <f4 (m/s).
 """
-
-class _Stamp(msgspec.Struct, forbid_unknown_fields=True):
-    sec: Count
-    nsec: Count
-
-
-Base64 = Annotated[str, msgspec.Meta(extra_json_schema={"contentEncoding": "base64"})]
-
-
-class CompressedImage(msgspec.Struct, forbid_unknown_fields=True):
-    """A Frame as logged: the fields of Foxglove's CompressedImage (so viewers show frames),
-    then the frame's own."""
-
-    timestamp: _Stamp
-    frame_id: str
-    data: Base64
-    format: str
-    run: Name
-    view: Name
-    step: Count
-    time_s: NonNegative
-    width: Count
-    height: Count
-
 
 class Rejected(msgspec.Struct, forbid_unknown_fields=True):
     """A payload that failed to decode, kept whole (protocol.log)."""

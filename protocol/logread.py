@@ -160,16 +160,10 @@ def _indexed(f: BinaryIO, path, summary: Summary, patterns: list[str] | None,
                           "read", LogDamagedWarning, stacklevel=3)
             return
         for record in records:
-            if not isinstance(record, Message) or record.channel_id not in wanted:
-                continue
-            if start_ns is not None and record.log_time < start_ns:
-                continue
-            if end_ns is not None and record.log_time >= end_ns:
-                continue
-            channel = summary.channels[record.channel_id]
-            schema = summary.schemas.get(channel.schema_id)
-            yield LogRecord(channel.topic, record.log_time, record.publish_time,
-                            schema.name if schema else "", bytes(record.data))
+            if isinstance(record, Message) and record.channel_id in wanted:
+                found = _log_record(record, summary.channels, summary.schemas, start_ns, end_ns)
+                if found is not None:
+                    yield found
 
 
 def _scan(f: BinaryIO, path, patterns: list[str] | None, start_ns: int | None,
@@ -207,14 +201,22 @@ def _scan(f: BinaryIO, path, patterns: list[str] | None, start_ns: int | None,
             channels[record.id] = record
             wanted[record.id] = matches(record.topic)
         elif isinstance(record, Message) and wanted.get(record.channel_id):
-            if start_ns is not None and record.log_time < start_ns:
-                continue
-            if end_ns is not None and record.log_time >= end_ns:
-                continue
-            channel = channels[record.channel_id]
-            schema = schemas.get(channel.schema_id)
-            yield LogRecord(channel.topic, record.log_time, record.publish_time,
-                            schema.name if schema else "", bytes(record.data))
+            found = _log_record(record, channels, schemas, start_ns, end_ns)
+            if found is not None:
+                yield found
+
+
+def _log_record(message: Message, channels: dict[int, Channel], schemas: dict[int, Schema],
+                start_ns: int | None, end_ns: int | None) -> LogRecord | None:
+    """The LogRecord of a stored message, or None when its log time is outside
+    [start_ns, end_ns)."""
+    if (start_ns is not None and message.log_time < start_ns) or (
+            end_ns is not None and message.log_time >= end_ns):
+        return None
+    channel = channels[message.channel_id]
+    schema = schemas.get(channel.schema_id)
+    return LogRecord(channel.topic, message.log_time, message.publish_time,
+                     schema.name if schema else "", bytes(message.data))
 
 
 # --- reading with the warnings kept as notes ------------------------------------------------

@@ -7,11 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from minority.protocol.trajectory import ROLLOUT_FORMAT, SIM_FORMAT, read_rollout, write_rollout
-from minority.protocol.vtkseries import Frame, VtkSeries
-
-__all__ = ["ROLLOUT_FORMAT", "SIM_FORMAT", "read_rollout", "velocities", "write_hdf5",
-           "write_vtk_series"]
+from minority.protocol.trajectory import write_rollout
+from minority.protocol.vtkseries import ParticleFrame, VtkSeries
 
 
 def velocities(positions: np.ndarray, frame_interval_s: float) -> np.ndarray:
@@ -37,7 +34,7 @@ def write_vtk_series(directory: str | Path, positions: np.ndarray, frame_interva
     vel = velocities(positions, frame_interval_s)
     series = VtkSeries(directory, stem, magnitudes=True)
     for k in range(0, len(positions), every):
-        series.add(Frame(k, k * frame_interval_s, positions[k].astype(np.float32), {
+        series.add(ParticleFrame(k, k * frame_interval_s, positions[k].astype(np.float32), {
             "displacement": (positions[k] - positions[0]).astype(np.float32),
             "velocity": vel[k].astype(np.float32)}))
     return series.close()

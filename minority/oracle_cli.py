@@ -409,10 +409,10 @@ def default_run(rollout: dict) -> str:
 def _cmd_spec(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from minority.gns.export import read_rollout
     from minority.gns.oracle import Oracle, OracleOptions
     from minority.protocol.errors import SpecError
     from minority.protocol.paraview import write_pvcc_for_views
+    from minority.protocol.trajectory import read_rollout
     from minority.sim.scene import SceneError
 
     if (status := missing("oracle spec", args.rollout)) is not None:

@@ -102,7 +102,7 @@ def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, sp
 
 def preview(spec_path: Path, rollout_path: Path, out: Path, columns: int = 6,
             thumb_width: int = 256) -> Path:
-    from minority.gns.export import read_rollout
+    from minority.protocol.trajectory import read_rollout
 
     spec = Spec.load(spec_path)
     r = read_rollout(rollout_path)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -18,21 +17,15 @@ import numpy as np
 MAGNITUDE_SUFFIX = "_magnitude"
 
 
-class FrameLike(Protocol):
-    """What a series writes: a Frame, or any object with these (e.g. an assembled step)."""
+@dataclass
+class ParticleFrame:
+    """What a series writes: this, or any object with these attributes (e.g. the render
+    server's AssembledStep)."""
 
     step: int  # the number in the file name: a sim step, or a frame of a rollout
     time_s: float  # s
     positions: np.ndarray  # [n, 3], m
     fields: dict[str, np.ndarray]  # name -> [n] or [n, k] point data
-
-
-@dataclass
-class Frame:
-    step: int
-    time_s: float  # s
-    positions: np.ndarray  # [n, 3], m
-    fields: dict[str, np.ndarray]  # name -> [n] or [n, k]
 
 
 class VtkSeries:
@@ -45,7 +38,7 @@ class VtkSeries:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.entries: list[tuple[float, str]] = []
 
-    def add(self, frame: FrameLike) -> Path:
+    def add(self, frame: ParticleFrame) -> Path:
         """Write one frame as {stem}_{frame.step:06d}.vtp at frame.time_s (s); point data
         dtypes are kept. Returns the .vtp path."""
         from vtkmodules.util.numpy_support import numpy_to_vtk

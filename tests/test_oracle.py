@@ -183,7 +183,7 @@ def test_preview_contact_sheet(tmp_path):
 
 def test_an_mpm_run_reads_as_a_prediction(tmp_path):
     import h5py
-    from minority.gns.export import SIM_FORMAT, read_rollout
+    from minority.protocol.trajectory import SIM_FORMAT, read_rollout
 
     pos = collapse(frames=41)
     with h5py.File(tmp_path / "mpm.h5", "w") as f:

@@ -6,7 +6,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from minority.protocol.vtkseries import Frame, VtkSeries
+from minority.protocol.vtkseries import ParticleFrame, VtkSeries
 
 pytest.importorskip("vtkmodules")
 
@@ -29,7 +29,7 @@ def read_vtp(path):
 def frame(k, t, n=40):
     rng = np.random.default_rng(k)
     pos = rng.uniform(0.0, 0.1, (n, 3)).astype(np.float32)
-    return Frame(k, t, pos, {"velocity": rng.normal(0, 1, (n, 3)).astype(np.float32),
+    return ParticleFrame(k, t, pos, {"velocity": rng.normal(0, 1, (n, 3)).astype(np.float32),
                              "id": np.arange(n, dtype=np.uint32),
                              "stress_pa": rng.normal(0, 1e3, n).astype(np.float64)})
 

@@ -307,7 +307,8 @@ def _replay_parser(sub) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from minority.protocol.errors import ProtocolError, SpecError
-    from minority.replay import ReplayError, replay
+    from minority.protocol.runlog import RunLogError
+    from minority.replay import replay
 
     if args.rate < 0:
         return fail("replay", "--rate must be 0 (as fast as possible) or positive", BAD_INPUT)
@@ -327,7 +328,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     try:
         spec = Spec.load(args.spec) if args.spec else None
         summary = replay(args.log, spec, out, args.vtk, args.run, args.shadows, progress)
-    except (ReplayError, SpecError, ProtocolError) as exc:
+    except (RunLogError, SpecError, ProtocolError) as exc:
         return fail("replay", exc, BAD_INPUT)
     except OSError as exc:
         return fail("replay", exc)
@@ -337,8 +338,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _replay_publish(args: argparse.Namespace) -> int:
     from minority.protocol.errors import ProtocolError
+    from minority.protocol.republish import NoServer
+    from minority.protocol.runlog import RunLogError
     from minority.protocol.session import Role, options_from_args
-    from minority.replay import NoServer, ReplayError, publish
+    from minority.replay import publish
 
     opts = options_from_args(args)
     opts.connect_timeout_s = args.wait
@@ -348,7 +351,7 @@ def _replay_publish(args: argparse.Namespace) -> int:
     stop = _stop_on_signals()
     try:
         s = publish(args.log, session, args.rate, args.run, args.wait, stop)
-    except (ReplayError, ProtocolError) as exc:
+    except (RunLogError, ProtocolError) as exc:
         return fail("replay", exc, FAILED if isinstance(exc, NoServer) else BAD_INPUT)
     finally:
         session.close()
@@ -383,11 +386,12 @@ def _report_parser(sub) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from minority.report import ReportError, report
+    from minority.protocol.runlog import RunLogError
+    from minority.report import report
 
     try:
         text = report(Path(args.log), args.out, not args.no_plots, args.run)
-    except ReportError as exc:
+    except RunLogError as exc:
         return fail("report", exc, BAD_INPUT)
     except OSError as exc:
         return fail("report", exc)
@@ -415,8 +419,9 @@ def _cmd_score(args: argparse.Namespace) -> int:
     import json
 
     from minority.protocol.errors import ProtocolError, SpecError
+    from minority.protocol.runlog import RunLogError
     from minority.protocol.spec import Spec
-    from minority.score import ScoreError, load_run, markdown, score
+    from minority.score import load_run, markdown, score
 
     spec_path, log_path = Path(args.spec), Path(args.log)
     if (status := missing("report score", spec_path, log_path)) is not None:
@@ -424,7 +429,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
     try:
         spec = Spec.load(spec_path)
         result = score(spec, load_run(log_path, spec.run))
-    except (ScoreError, SpecError, ProtocolError) as exc:
+    except (RunLogError, SpecError, ProtocolError) as exc:
         return fail("report score", exc, BAD_INPUT)
     except OSError as exc:
         return fail("report score", exc)

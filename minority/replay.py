@@ -15,30 +15,10 @@ from pathlib import Path
 import zenoh
 
 from minority.protocol.logread import LogNote
-from minority.protocol.republish import (  # noqa: F401 - the command's names, as before
-    REPLAY_QOS,
-    NoServer,
-    PublishSummary,
-    republish,
-)
-from minority.protocol.runlog import RunLogError, log_run, log_specs  # noqa: F401 - as before
+from minority.protocol.republish import PublishSummary, republish
 from minority.protocol.spec import Spec
-from minority.protocol.vtkseries import VtkSeries  # noqa: F401 - as before
-from minority.render_server.rerender import (  # noqa: F401 - the command's names, as before
-    MAX_PENDING_STEPS,
-    SHOWN_STEPS,
-    UNRECORDED,
-    ReplaySummary,
-    ViewReport,
-    covered,
-    missing_data,
-    recorded_steps,
-    rerender,
-    unrecorded,
-)
+from minority.render_server.rerender import ReplaySummary, rerender
 from minority.report import Notice, notice_on_stderr, say_notes
-
-ReplayError = RunLogError  # the log cannot be replayed as asked (no such run, spec, chunks)
 
 
 def replay(path: Path, spec: Spec | None = None, out: Path | None = None,

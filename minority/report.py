@@ -12,33 +12,15 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
-from minority.protocol.costs import (  # noqa: F401 - the report's numbers, importable from here
-    Breakdown,
-    ByteSummary,
-    StepAccounting,
-    StepTiming,
-    TimingTable,
-    byte_summary,
-    step_accounting,
-    timing_table,
-    total_particles,
-)
-from minority.protocol.logread import LogNote, read_log_noting  # noqa: F401 - as before
-from minority.protocol.runlog import (  # noqa: F401 - as before
-    ChunkInfo,
-    RunLog,
-    RunLogError,
-    chunk_info,
-    read_run,
-)
+from minority.protocol.costs import byte_summary, step_accounting, timing_table
+from minority.protocol.logread import LogNote
+from minority.protocol.runlog import RunLog, read_run
 
 MAX_STEP_ROWS = 200  # per-step table rows printed (first and last half beyond that)
 MAX_LISTED = 20  # step numbers listed inline
 MAX_TICKS = 12  # step labels on a plot's x axis
 SERVER_COUNTS = ("steps_rendered", "steps_skipped", "timed_out", "evicted", "late", "duplicates",
                  "inbox_dropped", "rejected", "view_errors", "frames", "chunks")
-
-ReportError = RunLogError  # bad input (no such file, not MCAP, nothing to report): exit 2
 
 Notice = Callable[[str], None]  # where one-line warnings go (the CLI: stderr)
 
@@ -57,7 +39,7 @@ def say_notes(notes: list[LogNote], notice: Notice) -> None:
 
 def load_run(path: str | Path, run: str | None = None, notice: Notice | None = None) -> RunLog:
     """Read one run of an MCAP log (the only run with timing records unless `run` names one).
-    Raises ReportError on bad input, OSError when the file cannot be read. A truncated or
+    Raises RunLogError on bad input, OSError when the file cannot be read. A truncated or
     damaged log is read up to its last complete chunk, said once to `notice` (default: a
     line on stderr) and recorded in RunLog.notes."""
     notes: list[LogNote] = []

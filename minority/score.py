@@ -20,15 +20,13 @@ import numpy as np
 from minority.gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
 from minority.protocol.logread import LogNote
 from minority.protocol.messages import SPEED_EDGES_M_S
-from minority.protocol.runlog import FlowRecord, RunLogError, read_flow
+from minority.protocol.runlog import FlowRecord, read_flow
 from minority.protocol.spec import Spec
 from minority.report import Notice, notice_on_stderr, say_notes
 
 EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
 EDGES = np.asarray(SPEED_EDGES_M_S)
 
-ScoreError = RunLogError  # bad input (no stats, no such file): exit 2
-RunRecord = FlowRecord  # what the log says the run did (protocol.runlog reads it)
 
 
 def quantile_from_histogram(hist: np.ndarray, q: float) -> np.ndarray:
@@ -55,7 +53,7 @@ def moving_count(hist: np.ndarray, threshold_m_s: float) -> np.ndarray:
 
 
 def load_run(path: str | Path, run: str | None = None,
-             notice: Notice | None = None) -> RunRecord:
+             notice: Notice | None = None) -> FlowRecord:
     """The stats, frames and chunk sizes of one run of a log (`run` None: every record, for a
     log that holds one run). A truncated or damaged log is read up to its last complete
     chunk, said once to `notice` (default: a line on stderr) and kept in log_notes."""
@@ -71,7 +69,7 @@ def _inside(times, windows) -> int:
     return int(sum(((t >= a) & (t <= b)).sum() for a, b in windows))
 
 
-def score(spec: Spec, run: RunRecord) -> dict:
+def score(spec: Spec, run: FlowRecord) -> dict:
     """Predicted vs actual, and the oracle's schedule vs a fixed cadence of equal budget."""
     scale = quantile_from_histogram(run.hist, SPEED_QUANTILE)
     actual = events_from_series(run.time_s, scale, run.kinetic_m2_s2)

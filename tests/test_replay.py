@@ -11,24 +11,19 @@ import pytest
 from conftest import free_port, make_chunk
 from minority.protocol import Frame, ProtocolError, Spec, keys
 from minority.protocol.log import read_log
+from minority.protocol.republish import REPLAY_QOS
+from minority.protocol.runlog import log_run, log_specs
 from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from minority.protocol.spec import Region, View
 from minority.render_server.assemble import AssembledStep
 from minority.render_server.daemon import RenderServer, ServerOptions
+from minority.render_server.rerender import UNRECORDED, covered, missing_data, unrecorded
 from PIL import Image
 from test_loopback import wait_until
 from test_render_daemon import EveryStep
 
 from minority.cli import main
-from minority.replay import (
-    REPLAY_QOS,
-    UNRECORDED,
-    covered,
-    log_specs,
-    missing_data,
-    replay,
-    unrecorded,
-)
+from minority.replay import replay
 
 RUN = "replay-run"
 STEPS = (0, 20, 40, 50)  # 50 is not scheduled: recorded, not rendered
@@ -253,7 +248,6 @@ def test_a_log_without_a_spec_names_its_run_from_its_chunks(tmp_path, capsys):
     plain replay with a traceback instead of "pass --spec"."""
     from minority.protocol.log import LogWriter
 
-    from minority.replay import log_run
 
     path = tmp_path / "sim-only.mcap"
     with LogWriter(path) as log:

@@ -10,19 +10,12 @@ import numpy as np
 import pytest
 from conftest import make_png, make_spec
 from minority.protocol import Chunk, Event, EventKind, Frame, Timing
+from minority.protocol.costs import byte_summary, step_accounting, timing_table, total_particles
 from minority.protocol.log import LogWriter
+from minority.protocol.runlog import RunLogError
 
 from minority.cli import main
-from minority.report import (
-    ReportError,
-    byte_summary,
-    load_run,
-    markdown,
-    plots,
-    step_accounting,
-    timing_table,
-    total_particles,
-)
+from minority.report import load_run, markdown, plots
 
 RUN = "rep"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -211,7 +204,7 @@ def _bad(tmp_path):
 
 def test_bad_input_fails_in_one_line(tmp_path, capsys):
     for name, reason in _bad(tmp_path).items():
-        with pytest.raises(ReportError, match=reason.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(RunLogError, match=reason.replace("(", r"\(").replace(")", r"\)")):
             load_run(tmp_path / name)
         assert main(["report", str(tmp_path / name)]) == 2
         err = capsys.readouterr().err

@@ -89,8 +89,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
                      coarse_grain=cfg.coarse_grain,
                      coarse_grain_method=cfg.coarse_grain_method)
     except (SweepError, DatasetError, OSError) as exc:
-        print(f"minority oracle dataset: error: {exc}", file=sys.stderr)
-        return 1
+        return _fail("dataset", exc, FAILED)
     counts = {s: sum(sc["split"] == s for sc in meta["scenes"]) for s in ("train", "valid", "test")}
     print(f"dataset {args.out}: {counts}, frame interval {meta['frame_interval_s']} s, "
           f"radius {meta['connectivity_radius_m']} m", file=sys.stderr)

@@ -47,9 +47,9 @@ def scene_toml(cfg: SweepConfig, p: ScenePlan) -> str:
 
 def frames_due(cfg: SweepConfig) -> int:
     """Frames of a finished run: t = 0 and every output interval up to the duration."""
-    from minority.sim.runner import _frame_times  # the sim's own count
+    from minority.sim.runner import frame_times
 
-    return len(_frame_times(cfg.duration_s, cfg.output_interval_s))
+    return len(frame_times(cfg.duration_s, cfg.output_interval_s))
 
 
 def complete(h5_path: Path, cfg: SweepConfig) -> bool:

@@ -29,7 +29,7 @@ from minority.protocol.messages import EventKind
 from minority.sim.decomp import DEFAULT_REBALANCE_EVERY, SlabSimulator
 from minority.sim.driver import NonFiniteError, TimeStepError
 from minority.sim.output import TrajectoryWriter
-from minority.sim.runner import PROGRESS_EVERY_S, _frame_times
+from minority.sim.runner import PROGRESS_EVERY_S, frame_times
 from minority.sim.scene import load_scene
 
 # Environment variables that MPI launchers set in the processes they start (MPICH/Hydra,
@@ -142,7 +142,7 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
     sim = SlabSimulator(scene, fixed_dt=config.dt, threads=threads, comm=comm,
                         rebalance_every=config.rebalance_every)
     n_total = sim.n_total
-    frames = _frame_times(scene.duration_s, scene.output_interval_s)
+    frames = frame_times(scene.duration_s, scene.output_interval_s)
     dt0 = config.dt if config.dt is not None else sim.stable_dt()
     publisher, run, spec = _start_publishing(config, scene, sim, comm, log)
     say(f"sim: scene {scene.name}: {n_total} particles on {ranks} rank(s) "

@@ -32,7 +32,8 @@ class RunSummary:
     threads: int
 
 
-def _frame_times(duration_s: float, interval_s: float) -> list[float]:
+def frame_times(duration_s: float, interval_s: float) -> list[float]:
+    """The times (s) a run of duration_s writes frames at: t = 0 and every interval_s."""
     count = int(math.floor(duration_s / interval_s * (1.0 + FRAME_TIME_TOL)))
     return [k * interval_s for k in range(count + 1)]
 
@@ -52,7 +53,7 @@ def run_scene(scene_path: str | Path, out_path: str | Path, *, dt: float | None 
     wall0 = time.perf_counter()
     sim = Simulator(scene, fixed_dt=dt, threads=threads)
     n = sim.particles.n
-    frames = _frame_times(scene.duration_s, scene.output_interval_s)
+    frames = frame_times(scene.duration_s, scene.output_interval_s)
     dt0 = dt if dt is not None else sim.stable_dt()
 
     def say(msg: str) -> None:

@@ -12,14 +12,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from minority.protocol.projection import CameraBasis, camera_basis, half_extents, project
+from minority.protocol.projection import camera_basis, half_extents
 from minority.protocol.spec import Camera
 from numba import njit, prange
-
-__all__ = ["CameraBasis", "RayFrame", "basis", "pixel_ray", "pixel_ray_unnormalized",
-           "primary_rays", "project", "ray_frame"]
-
-basis = camera_basis  # the renderer's name for the camera frame
 
 
 class RayFrame(NamedTuple):

@@ -15,10 +15,11 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from minority.protocol.projection import camera_basis
 from minority.protocol.spec import View
 from minority.render_server.accel import BrickGrids, build_grids
 from minority.render_server.bricks import Bricks, as_positions, repartition
-from minority.render_server.camera import basis, pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
+from minority.render_server.camera import pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
 from minority.render_server.cast import cast
 from minority.render_server.colormap import view_colormap
 from minority.render_server.trace import trace
@@ -68,7 +69,7 @@ def field_columns(field: np.ndarray) -> np.ndarray:
 
 
 def key_light(view: View) -> np.ndarray:
-    b = basis(view.camera)
+    b = camera_basis(view.camera)
     d = KEY_LIGHT_CAMERA[0] * b.right + KEY_LIGHT_CAMERA[1] * b.up - KEY_LIGHT_CAMERA[2] * b.forward
     return d / np.linalg.norm(d)  # direction from a surface point toward the light
 

@@ -10,8 +10,7 @@ from minority.gns.export import write_hdf5
 from minority.gns.oracle import Oracle, OracleOptions, fit_camera
 from minority.protocol import Camera, Spec
 from minority.protocol.paraview import read_pvcc
-from minority.protocol.projection import in_view
-from minority.render_server.camera import project
+from minority.protocol.projection import in_view, project
 
 DT = 0.005  # s per rollout frame
 BOUNDS = np.array([[0.0, 1.0], [0.0, 0.2], [0.0, 0.4]])

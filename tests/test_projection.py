@@ -14,7 +14,6 @@ from minority.protocol.projection import (
     project,
 )
 from minority.protocol.spec import Camera, View
-from minority.render_server import camera as render_camera
 from minority.render_server.camera import primary_rays, ray_frame
 from minority.render_server.cast import cast
 from minority.render_server.render import prepare, render
@@ -62,11 +61,6 @@ def world_points(cam: Camera, x, y, depth) -> np.ndarray:
             + sx[:, None] * f.right + sy[:, None] * f.up)
 
 
-def test_the_renderer_projects_with_the_protocol():
-    assert render_camera.project is project
-    assert render_camera.basis is camera_basis
-
-
 @pytest.mark.parametrize("seed", range(5))
 def test_projection_equals_the_matrix_form(seed):
     rng = np.random.default_rng(seed)
@@ -111,7 +105,7 @@ def test_points_on_the_frame_edges(name):
     inside = np.r_[np.ones(len(edge), bool), np.zeros(len(edge), bool)]
     depth = np.linspace(0.8, 2.5, len(xy))  # m
     pts = world_points(cam, xy[:, 0], xy[:, 1], depth)
-    px = render_camera.project(pts, cam, WIDTH, HEIGHT)
+    px = project(pts, cam, WIDTH, HEIGHT)
     np.testing.assert_allclose(px, xy, rtol=0.0, atol=ROUND_TRIP_PX)
     renderer_in = ((px[:, 0] >= 0) & (px[:, 0] <= WIDTH) & (px[:, 1] >= 0)
                    & (px[:, 1] <= HEIGHT))
@@ -166,7 +160,7 @@ def test_renderer_and_visibility_agree_at_the_frame_edges(name):
     _, _, d = camera_coordinates(pos, camera_basis(cam))
     k = pixels_per_unit(cam, HEIGHT)
     reach = 1.3 * k * radius / (1.0 if cam.parallel_projection else d)
-    px = render_camera.project(pos, cam, WIDTH, HEIGHT)
+    px = project(pos, cam, WIDTH, HEIGHT)
     near_frame = ((px[:, 0] >= -reach) & (px[:, 0] <= WIDTH + reach) & (px[:, 1] >= -reach)
                   & (px[:, 1] <= HEIGHT + reach))
     assert near_frame[keep].all()

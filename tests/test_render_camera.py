@@ -3,8 +3,9 @@ projection matrix (within 0.5 px), perspective and parallel; rays pass through t
 
 import numpy as np
 import pytest
+from minority.protocol.projection import camera_basis, project
 from minority.protocol.spec import Camera
-from minority.render_server.camera import basis, primary_rays, project
+from minority.render_server.camera import primary_rays
 from vtkmodules.vtkRenderingCore import vtkCamera
 
 WIDTH, HEIGHT = 640, 480
@@ -40,7 +41,7 @@ def random_cameras(rng, count):
 def test_projection_matches_vtk(seed):
     rng = np.random.default_rng(seed)
     for cam in random_cameras(rng, 5):
-        b = basis(cam)
+        b = camera_basis(cam)
         # points in front of the camera, near the focal point
         pts = np.asarray(cam.focal_point) + rng.normal(scale=0.3, size=(200, 3))
         pts = pts[(pts - b.position) @ b.forward > 0.05]

@@ -85,7 +85,7 @@ Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Vec3 = tuple[Finite, Finite, Finite]
 RGB = tuple[Unit, Unit, Unit]
 Name = Annotated[str, msgspec.Meta(pattern=NAME_RE.pattern)]
-Count = Annotated[int, msgspec.Meta(ge=0, le=(1 << 63) - 1)]
+Count = Annotated[int, msgspec.Meta(ge=0, le=1 << 40)]  # steps, particles, bytes; larger: corrupt
 Positive = Annotated[int, msgspec.Meta(ge=1, le=(1 << 63) - 1)]
 Base64 = Annotated[str, msgspec.Meta(extra_json_schema={"contentEncoding": "base64"})]
 

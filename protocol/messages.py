@@ -14,24 +14,22 @@ from typing import Annotated, ClassVar, Literal
 import msgspec
 import numpy as np
 from minority.protocol import check
-from minority.protocol.check import Base64, Name, NonNegative
+from minority.protocol.check import Base64, Count, Name, NonNegative
 from minority.protocol.errors import ProtocolError
 from minority.protocol.spec import Spec
+from minority.protocol.view import Side
 from minority.protocol.wire import Envelope, MessageKind, decode, encode, peek_kind
 
 MAX_RANKS = 1 << 20
-MAX_IMAGE_SIDE = 8192  # px
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 POSITIONS = "positions"
 MAX_ABS_COORD_M = 1e12  # larger (or non-finite) header numbers are corrupt
 
 # Typed header metas, checked in C by msgspec on decode; the JSON Schemas stored in logs are
 # derived from them (protocol.schemas).
-Count = Annotated[int, msgspec.Meta(ge=0, le=1 << 40)]
 Seconds = Annotated[float, msgspec.Meta(ge=0.0, le=1e12)]
 Coord = Annotated[float, msgspec.Meta(ge=-MAX_ABS_COORD_M, le=MAX_ABS_COORD_M)]
-Vec3 = tuple[Coord, Coord, Coord]
-Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_IMAGE_SIDE)]
+Corner = tuple[Coord, Coord, Coord]  # of a box, m
 
 
 class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
@@ -42,7 +40,7 @@ class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     ranks: Annotated[int, msgspec.Meta(ge=1, le=MAX_RANKS)]
     count: Count
     spacing_m: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_ABS_COORD_M)]
-    bounds_m: tuple[Vec3, Vec3]
+    bounds_m: tuple[Corner, Corner]
     prev_time_s: Seconds | None = None  # the previous step's time (every_s cadences use it)
 
 

@@ -53,6 +53,8 @@ class AssembledStep:
     receive_s: float  # earliest send of the step's chunks to assembled, s (see _release)
     incomplete: bool
     prev_time_s: float | None = None  # simulated time of the step before, s (None: unknown)
+    # the simulation's domain (lo, hi corners, m): the union of the chunks' bounds
+    bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
 
 @dataclass
@@ -169,9 +171,11 @@ class StepAssembler:
         start_ns = p.first_sent_ns if 0 < p.first_sent_ns <= p.first_ns else p.first_ns
         # every rank reports the same previous step time: rank 0's, else the first known
         prev = next((c.prev_time_s for c in chunks if c.prev_time_s is not None), None)
+        lo = tuple(float(min(c.bounds_m[0][i] for c in chunks)) for i in range(3))
+        hi = tuple(float(max(c.bounds_m[1][i] for c in chunks)) for i in range(3))
         return AssembledStep(
             step=step, time_s=p.time_s,
             positions=join([c.positions for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
             nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
-            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev)
+            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev, bounds_m=(lo, hi))

@@ -19,6 +19,7 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,6 +60,10 @@ class ServerOptions:
     inbox_bytes: int = 1 << 30  # and at most this many bytes of them queued
     shadows: bool = False
     write_png: bool = True
+    # called with (run name, key, message) for the spec, frames, timing, events and stats of
+    # each run as they are logged (chunks excepted), on the receive and render threads: it
+    # must return at once (enqueue, never wait); what it raises is reported, not fatal
+    observer: Callable[[str, str, object], None] | None = None
 
 
 class LatestStep:
@@ -123,6 +128,7 @@ class RenderServer:
         self._run: RunInstance | None = None
         self._seq = 0
         self.between_runs = 0  # rank messages that came when no run was open: not logged
+        self.observer_errors = 0  # calls of options.observer that raised
         culled = [v.name for v in self.spec.views if v.occlusion_cull]
         if options.shadows and culled:
             print(f"minority serve: views {', '.join(culled)} have occlusion_cull: the sim "
@@ -192,6 +198,7 @@ class RenderServer:
         if self._log is not None:
             self._log.put(writer, keys.spec(self.run), self._spec_payload, time.time_ns(),
                           self.spec)
+        self._observe(inst, keys.spec(self.run), self.spec)
         self._publish_event(inst, EventKind.RUN_START,
                             f"render server up, {len(self.spec.views)} views", {"name": name})
         return inst
@@ -263,6 +270,8 @@ class RenderServer:
                 continue
             if self._log is not None:  # a malformed one goes to the log's rejected topic
                 self._log.put(inst.writer, item.key, item.payload, item.recv_ns, message)
+            if message is not None:
+                self._observe(inst, item.key, message)
             if message is not None and cls is Event and message.kind == EventKind.RANK_DONE:
                 sent = message.detail.get("sent")
                 if type(sent) is int and sent >= 0:
@@ -370,9 +379,23 @@ class RenderServer:
         subscriber side ignores the server's own frames, timing and events)."""
         payload = message.encode()
         put(self.session, key, payload, qos)
-        if self._log is not None and inst is not None:
+        if inst is not None:
             message.sent_ns = struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0]
-            self._log.put(inst.writer, key, payload, time.time_ns(), message)
+            if self._log is not None:
+                self._log.put(inst.writer, key, payload, time.time_ns(), message)
+            self._observe(inst, key, message)
+
+    def _observe(self, inst: RunInstance, key: str, message) -> None:
+        observer = self.options.observer
+        if observer is None:
+            return
+        try:
+            observer(inst.name, key, message)
+        except Exception as exc:  # noqa: BLE001 - a viewer's fault never stops the server
+            self.observer_errors += 1
+            if self.observer_errors == 1:
+                print(f"minority serve: the observer failed: {exc!r}", file=sys.stderr,
+                      flush=True)
 
     def _publish_event(self, inst: RunInstance | None, kind: EventKind, message: str,
                        detail: dict | None = None) -> None:

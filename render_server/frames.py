@@ -34,6 +34,9 @@ class StepLike(Protocol):
     positions: np.ndarray  # [n, 3] float32, m
     fields: dict[str, np.ndarray]  # [n] or [n, k]
     spacing_m: float  # particle spacing, m
+    # (optional, absent: False) True when the step holds every particle, those outside the
+    # regions from the server's cache: a view then draws them all, not only its regions
+    completed: bool
 
 
 @dataclass
@@ -59,7 +62,8 @@ class _Subset:
 
 def subset_key(spec: Spec, view: View, step: StepLike) -> SubsetKey:
     """The particle subset `view` shows at `step` (the view must be due)."""
-    regions = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
+    regions = (None if getattr(step, "completed", False)
+               else spec.view_regions(view, step.step, step.time_s, step.prev_time_s))
     stride = view.decimate if view.decimate > 1 and ID_FIELD in step.fields else 1
     return regions, stride
 

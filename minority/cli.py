@@ -269,6 +269,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 # --- replay -----------------------------------------------------------------------------
 
 def _replay_parser(sub) -> None:
+    from minority.movie import DEFAULT_FPS
+
     p = command(sub, "replay", help="re-render, export or re-publish a recorded MCAP log",
                 description="Re-render the chunks of a recorded run with the log's own spec "
                             "(its last) or a new one into DIR/{view}/{step:06d}.png (the "
@@ -276,14 +278,18 @@ def _replay_parser(sub) -> None:
                             "needing data the log does not hold (a field, particles culled "
                             "away, steps never recorded) are reported, not rendered. --vtk "
                             "exports the steps for ParaView; --publish re-sends the chunks to "
-                            "a running `minority serve`. Exit status 2 on bad input, 1 when a "
-                            "file or the network fails.")
+                            "a running `minority serve`; --movie makes DIR/{view}.mp4 and "
+                            "DIR/{view}.webp of every view (without --spec from the frames the "
+                            "server logged, written to DIR/{view}/ and not re-rendered). Exit "
+                            "status 2 on bad input (no such log, a bad spec, no frames for any "
+                            "view), 1 when a file, ffmpeg or the network fails.")
     p.add_argument("log", type=Path, metavar="RUN.mcap",
                    help="MCAP file written by `minority serve` or `minority record`")
     p.add_argument("--spec", type=Path, metavar="FILE",
                    help="spec JSON to render with (default: the last spec in the log)")
-    add_out(p, "frame directory (default: RUN-replay beside the log); frames are rendered "
-               "when --out is given or neither --vtk nor --publish is", metavar="DIR")
+    add_out(p, "frame directory (default: RUN-replay beside the log); frames are written "
+               "when --out or --movie is given or neither --vtk nor --publish is",
+            metavar="DIR")
     p.add_argument("--vtk", type=Path, metavar="DIR",
                    help="write every recorded step as DIR/{run}_{step:06d}.vtp (all recorded "
                         "fields as point data) plus DIR/{run}.pvd with the simulated times")
@@ -300,6 +306,17 @@ def _replay_parser(sub) -> None:
                    help="cast shadow rays (as `minority serve --shadows` did)")
     p.add_argument("--wait", type=float, default=10.0, metavar="S",
                    help="with --publish: wait S seconds for the server")
+    p.add_argument("--movie", action="store_true",
+                   help="also write DIR/{view}.mp4 (H.264, yuv420p; odd sides padded to even "
+                        "by repeating the last row or column, never cropped) and a small "
+                        "looping animation DIR/{view}.webp (320 px wide, at most 40 frames, "
+                        "under 1 MB: for a README or a web page) of each view's frames in "
+                        "step order; without --spec the frames are those the server logged "
+                        "(a log without frames is re-rendered with its own spec)")
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS, metavar="N",
+                   help="with --movie: frames per second of the movies; one movie frame per "
+                        "rendered frame, whatever the schedule's cadence, so movie time is "
+                        "not simulated time when a view's cadence changes between windows")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     _add_network(p)
     p.set_defaults(func=_cmd_replay, kernels=True)
@@ -312,25 +329,33 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     if args.rate < 0:
         return fail("replay", "--rate must be 0 (as fast as possible) or positive", BAD_INPUT)
+    if not args.fps > 0:
+        return fail("replay", f"--fps must be positive, not {args.fps:g}", BAD_INPUT)
     if not args.log.is_file():
         return fail("replay", f"{args.log}: no such file", BAD_INPUT)
     if args.publish:
-        if args.spec or args.out or args.vtk:
+        if args.spec or args.out or args.vtk or args.movie:
             print("minority replay: --publish re-sends the chunks only; the server renders them "
-                  "with its own spec (--spec, --out, --vtk ignored)", file=sys.stderr)
+                  "with its own spec (--spec, --out, --vtk, --movie ignored)", file=sys.stderr)
         return _replay_publish(args)
+    from minority.movie import MovieError
     from minority.protocol.spec import Spec
+    from minority.replay import replay_movies
 
     out = args.out
-    if out is None and args.vtk is None:
+    if out is None and (args.vtk is None or args.movie):
         out = args.log.parent / f"{args.log.stem}-replay"
     progress = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     try:
         spec = Spec.load(args.spec) if args.spec else None
-        summary = replay(args.log, spec, out, args.vtk, args.run, args.shadows, progress)
-    except (RunLogError, SpecError, ProtocolError) as exc:
+        if args.movie:
+            summary = replay_movies(args.log, spec, out, args.vtk, args.run, args.shadows,
+                                    args.fps, progress=progress)
+        else:
+            summary = replay(args.log, spec, out, args.vtk, args.run, args.shadows, progress)
+    except (RunLogError, SpecError, ProtocolError, MovieError) as exc:
         return fail("replay", exc, BAD_INPUT)
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:  # a file that cannot be written; ffmpeg failing
         return fail("replay", exc)
     print(summary.text())
     return 0

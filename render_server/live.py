@@ -1,0 +1,506 @@
+"""The live view (`minority serve --http HOST:PORT`): an HTTP server in the render server's
+process with one page (live_page.html) that shows each run as it happens.
+
+- The daemon calls `LiveView.observe` (its `ServerOptions.observer`) with the spec, every
+  Frame, Timing, Event and Stats of each run, on its receive and render threads. The call only
+  updates bounded state under a short lock and enqueues small messages: the newest frame per
+  view (its PNG kept in memory, served at /live/{run}/{view}.png), per-step rows of Stats
+  summed over ranks and of Timing summed over views (at most MAX_STEPS each), the last
+  MAX_EVENTS events.
+- Each browser has its own bounded queue (ClientQueue) of server-sent events (GET /events);
+  a full queue drops its oldest message and counts the drop, so a slow or vanished browser
+  never slows the daemon. Frames and events are pushed as they come; the timeline (the
+  Stats series against the spec's predicted events, and the timing series) is recomputed on
+  the pusher thread, at most once per PUSH_INTERVAL_S, and pushed whole.
+- GET /api/state: every run's state as JSON (what /events sends first); GET /api/index and
+  /files/...: the --out directory, read-only (render_server.live_files).
+
+Moving particles follow the oracle's rule (gns.events, which render_server does not import):
+faster than MOVING_SPEED_FRACTION of the peak speed scale, the SPEED_QUANTILE of the speeds,
+here read from the Stats histograms and the peak taken over the run so far.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import socket
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import numpy as np
+from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Event, Frame, Stats, Timing
+from minority.protocol.spec import Spec
+from minority.render_server import live_files
+
+MAX_RUNS = 16  # runs kept in memory (the oldest forgotten first)
+MAX_STEPS = 2000  # Stats and Timing rows kept per run (the oldest steps forgotten first)
+MAX_EVENTS = 200  # events kept per run
+CLIENT_CAPACITY = 256  # messages queued per browser
+MAX_CLIENTS = 32  # browsers streaming at once (more: 503)
+PUSH_INTERVAL_S = 0.5  # a run's timeline is pushed at most this often
+KEEPALIVE_S = 15.0  # an idle stream gets a comment line this often
+SOCKET_TIMEOUT_S = 30.0  # a browser that takes no bytes this long is dropped
+MOVING_SPEED_FRACTION = 0.05  # gns.events.MOVING_SPEED_FRACTION
+SPEED_QUANTILE = 0.95  # gns.events.SPEED_QUANTILE
+EDGES = np.asarray(SPEED_EDGES_M_S)
+LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1"}
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """'PORT', 'HOST:PORT' or '[IPV6]:PORT' -> (host, port); the host defaults to 127.0.0.1.
+    Raises ValueError naming the problem."""
+    host, sep, port = text.strip().rpartition(":")
+    if not sep:
+        host, port = "127.0.0.1", text.strip()
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    elif ":" in host:
+        raise ValueError(f"--http {text!r}: write an IPv6 address in brackets, [::1]:PORT")
+    if not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"--http {text!r}: the port must be a number from 0 to 65535 (0: a "
+                         "free one)")
+    if not host:
+        raise ValueError(f"--http {text!r}: no host before the colon (HOST:PORT or PORT)")
+    return host, int(port)
+
+
+def quantile_speed(hist: np.ndarray, q: float = SPEED_QUANTILE) -> np.ndarray:
+    """Per row of hist [k, SPEED_BINS] the q-quantile speed (m/s), log-interpolated in its bin
+    (the lowest bin reads as rest), as minority.score reads it."""
+    lo = np.r_[EDGES[0] * 0.1, EDGES]
+    hi = np.r_[EDGES, EDGES[-1] * 10]
+    cum = np.cumsum(hist, axis=1)
+    target = q * cum[:, -1]
+    i = np.minimum((cum < target[:, None]).sum(axis=1), hist.shape[1] - 1)
+    rows = np.arange(len(hist))
+    below = np.where(i > 0, cum[rows, np.maximum(i - 1, 0)], 0)
+    frac = (target - below) / np.maximum(hist[rows, i], 1)
+    return np.where((i > 0) & (cum[:, -1] > 0), lo[i] * (hi[i] / lo[i]) ** frac, 0.0)
+
+
+class ClientQueue:
+    """One browser's bounded queue of encoded server-sent events: a full queue drops its
+    oldest message (counted in `dropped`); `written` counts what went to the socket."""
+
+    def __init__(self, capacity: int = CLIENT_CAPACITY, connection: socket.socket | None = None):
+        self.capacity = capacity
+        self.connection = connection
+        self.dropped = 0
+        self.written = 0
+        self.closed = False
+        self._items: collections.deque[bytes] = collections.deque()
+        self._cond = threading.Condition()
+
+    def put(self, data: bytes) -> None:
+        with self._cond:
+            if self.closed:
+                return
+            if len(self._items) >= self.capacity:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(data)
+            self._cond.notify()
+
+    def get(self, timeout: float) -> bytes | None:
+        """The next message, or None after `timeout` s or once closed."""
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items and not self.closed else None
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def close(self) -> None:
+        """Wake the stream's thread and end its connection (a blocked write fails)."""
+        with self._cond:
+            self.closed = True
+            self._items.clear()
+            self._cond.notify_all()
+        if self.connection is not None:
+            try:
+                self.connection.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+
+def sse(event: str, data: dict) -> bytes:
+    """One server-sent event (JSON data on one line)."""
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'), default=str)}\n\n".encode()
+
+
+class _StatsRow:
+    """Stats of one step summed over the ranks that sent them."""
+
+    __slots__ = ("time_s", "ranks", "count", "speed_sq", "max_disp", "hist")
+
+    def __init__(self, time_s: float):
+        self.time_s = time_s
+        self.ranks: set[int] = set()
+        self.count = 0
+        self.speed_sq = 0.0  # m^2/s^2
+        self.max_disp = 0.0  # m
+        self.hist = np.zeros(SPEED_BINS, np.int64)
+
+
+class _RunState:
+    def __init__(self, seq: int, name: str):
+        self.seq = seq  # order of first sight
+        self.name = name  # the run instance: {run}, {run}.1, ...
+        self.run = name
+        self.views: list[dict] = []
+        self.predicted: list[dict] = []
+        self.frames: dict[str, Frame] = {}
+        self.stats: collections.OrderedDict[int, _StatsRow] = collections.OrderedDict()
+        self.timing: collections.OrderedDict[int, list] = collections.OrderedDict()
+        self.events: collections.deque[dict] = collections.deque(maxlen=MAX_EVENTS)
+
+
+def _frame_json(run: str, f: Frame) -> dict:
+    return {"run": run, "view": f.view, "step": f.step, "time_s": f.time_s, "width": f.width,
+            "height": f.height, "url": f"/live/{run}/{f.view}.png?step={f.step}"}
+
+
+def _rounded(a) -> list[float]:
+    return [float(f"{v:.6g}") for v in np.asarray(a, dtype=np.float64)]
+
+
+def _put_bounded(rows: collections.OrderedDict, step: int, make):
+    """The row of `step`, made when new (the oldest step forgotten past MAX_STEPS)."""
+    row = rows.get(step)
+    if row is None:
+        row = rows[step] = make()
+        if len(rows) > MAX_STEPS:
+            rows.popitem(last=False)
+    return row
+
+
+class LiveView:
+    """The HTTP server and the state it shows; binds at construction (OSError: the address is
+    in use or not this host's; ValueError: a host name that does not resolve)."""
+
+    def __init__(self, out_dir: Path, host: str = "127.0.0.1", port: int = 0, *,
+                 client_capacity: int = CLIENT_CAPACITY,
+                 push_interval_s: float = PUSH_INTERVAL_S):
+        self.out_dir = Path(out_dir)
+        self.client_capacity = client_capacity
+        self.push_interval_s = push_interval_s
+        self.page = resources.files("minority.render_server").joinpath(
+            "live_page.html").read_bytes()
+        self._lock = threading.Lock()  # the run states and the client list
+        self._runs: dict[str, _RunState] = {}
+        self._seq = 0
+        self._clients: list[ClientQueue] = []
+        self.dropped_by_gone = 0  # drops of clients that have left
+        self._dirty: set[str] = set()
+        self._cond = threading.Condition()
+        self._closing = threading.Event()
+        self.httpd = _Server(host, port, self)
+        self.loopback = host in LOOPBACK_NAMES or host.startswith("127.")
+        self._threads = [threading.Thread(target=self.httpd.serve_forever, args=(0.2,),
+                                          name="minority-live-http", daemon=True),
+                         threading.Thread(target=self._push_loop, name="minority-live-push",
+                                          daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    @property
+    def url(self) -> str:
+        host, port = self.httpd.server_address[:2]
+        return f"http://{f'[{host}]' if ':' in host else host}:{port}/"
+
+    @property
+    def dropped(self) -> int:
+        """Messages dropped for slow browsers, in all."""
+        with self._lock:
+            return self.dropped_by_gone + sum(c.dropped for c in self._clients)
+
+    # --- the daemon's observer (returns at once) ---------------------------------------
+    def observe(self, run_name: str, key: str, message: object) -> None:
+        """ServerOptions.observer: take one message of run `run_name` (a run instance)."""
+        with self._lock:
+            state = self._state(run_name)
+            if isinstance(message, Frame):
+                state.frames[message.view] = message
+                self._broadcast("frame", _frame_json(run_name, message))
+            elif isinstance(message, Stats):
+                row = _put_bounded(state.stats, message.step, lambda: _StatsRow(message.time_s))
+                if message.rank not in row.ranks:  # a rank's stats count once per step
+                    row.ranks.add(message.rank)
+                    row.count += message.count
+                    row.speed_sq += message.speed_sq_sum_m2_s2
+                    row.max_disp = max(row.max_disp, message.max_displacement_m)
+                    row.hist += message.hist_in_regions
+                    row.hist += message.hist_elsewhere
+                self._mark(run_name)
+            elif isinstance(message, Timing):
+                # time_s, receive_s, setup_s and render_s summed over the views, views
+                row = _put_bounded(state.timing, message.step,
+                                   lambda: [message.time_s, 0.0, 0.0, 0.0, 0])
+                row[1] = max(row[1], message.receive_s)  # one receive per step
+                row[2] += message.setup_s
+                row[3] += message.render_s
+                row[4] += 1
+                self._mark(run_name)
+            elif isinstance(message, Event):
+                event = {"run": run_name, "event": str(message.kind), "rank": message.rank,
+                         "message": message.message, "detail": message.detail,
+                         "sent_ns": message.sent_ns}
+                state.events.append(event)
+                self._broadcast("event", event)
+            elif isinstance(message, Spec):
+                state.run = message.run
+                state.views = [{"name": v.name, "width": v.width, "height": v.height,
+                                "field": v.field} for v in message.views]
+                state.predicted = [e.to_dict() for e in message.events]
+                self._broadcast("run", self._run_json(state, timeline=False))
+
+    def _state(self, name: str) -> _RunState:
+        state = self._runs.get(name)
+        if state is None:
+            self._seq += 1
+            state = self._runs[name] = _RunState(self._seq, name)
+            if len(self._runs) > MAX_RUNS:
+                del self._runs[min(self._runs.values(), key=lambda s: s.seq).name]
+        return state
+
+    def _broadcast(self, event: str, data: dict) -> None:
+        message = sse(event, data)
+        for client in self._clients:
+            client.put(message)
+
+    def _mark(self, name: str) -> None:
+        with self._cond:
+            self._dirty.add(name)
+            self._cond.notify()
+
+    # --- the timeline, on the pusher thread --------------------------------------------
+    def _push_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._dirty and not self._closing.is_set():
+                    self._cond.wait()
+                dirty, self._dirty = self._dirty, set()
+            if self._closing.is_set():
+                return
+            for name in sorted(dirty):
+                with self._lock:
+                    if name in self._runs:
+                        self._broadcast("timeline", self._timeline(self._runs[name]))
+            self._closing.wait(self.push_interval_s)  # at most one push per interval
+
+    def timeline(self, name: str) -> dict | None:
+        """The run's series as the page draws them (None for an unknown run)."""
+        with self._lock:
+            state = self._runs.get(name)
+            return None if state is None else self._timeline(state)
+
+    def _timeline(self, state: _RunState) -> dict:
+        """Stats summed over ranks per step: time (s), particles, kinetic energy per unit
+        particle mass 1/2 sum |v|^2 (J/kg), moving share, max displacement (m); timing per
+        step: receive, setup and render (s, setup and render summed over the views)."""
+        steps = sorted(state.stats)
+        rows = [state.stats[s] for s in steps]
+        hist = np.array([r.hist for r in rows], np.int64).reshape(-1, SPEED_BINS)
+        count = np.array([r.count for r in rows], np.float64)
+        scale = quantile_speed(hist) if len(rows) else np.zeros(0)
+        threshold = MOVING_SPEED_FRACTION * float(scale.max()) if len(rows) else 0.0
+        moving = hist[:, np.r_[0.0, EDGES] >= threshold].sum(axis=1) if threshold > 0 else 0 * count
+        tsteps = sorted(state.timing)
+        timing = np.array([state.timing[s][:4] for s in tsteps], np.float64).reshape(-1, 4)
+        return {"run": state.name,
+                "stats": {"step": steps, "time_s": _rounded([r.time_s for r in rows]),
+                          "particles": [r.count for r in rows],
+                          "ranks": [len(r.ranks) for r in rows],
+                          "kinetic_j_per_kg": _rounded([0.5 * r.speed_sq for r in rows]),
+                          "moving_share": _rounded(moving / np.maximum(count, 1)),
+                          "max_displacement_m": _rounded([r.max_disp for r in rows]),
+                          "moving_speed_m_s": threshold},
+                "timing": {"step": tsteps, "time_s": _rounded(timing[:, 0]),
+                           "receive_s": _rounded(timing[:, 1]), "setup_s": _rounded(timing[:, 2]),
+                           "render_s": _rounded(timing[:, 3])}}
+
+    def _run_json(self, state: _RunState, timeline: bool = True) -> dict:
+        d = {"name": state.name, "run": state.run, "seq": state.seq, "views": state.views,
+             "predicted": state.predicted, "events": list(state.events),
+             "frames": {v: _frame_json(state.name, f) for v, f in state.frames.items()}}
+        if timeline:
+            d["timeline"] = self._timeline(state)
+        return d
+
+    def state(self) -> dict:
+        """Every run the server has seen (oldest first), with its newest frames and series."""
+        with self._lock:
+            return self._state_json()
+
+    def _state_json(self) -> dict:
+        return {"runs": [self._run_json(s) for s in sorted(self._runs.values(),
+                                                           key=lambda s: s.seq)],
+                "moving_speed_fraction": MOVING_SPEED_FRACTION, "out": str(self.out_dir)}
+
+    def newest_png(self, run: str, view: str) -> bytes | None:
+        with self._lock:
+            state = self._runs.get(run)
+            frame = state.frames.get(view) if state is not None else None
+            return None if frame is None else frame.png
+
+    # --- browsers ------------------------------------------------------------------------
+    def subscribe(self, connection: socket.socket | None = None) -> ClientQueue | None:
+        """A new stream's queue, the full state queued first (None: MAX_CLIENTS streaming)."""
+        with self._lock:
+            if len(self._clients) >= MAX_CLIENTS or self._closing.is_set():
+                return None
+            client = ClientQueue(self.client_capacity, connection)
+            client.put(sse("state", self._state_json()))
+            self._clients.append(client)
+            return client
+
+    def unsubscribe(self, client: ClientQueue) -> None:
+        with self._lock:
+            if client in self._clients:
+                self._clients.remove(client)
+                self.dropped_by_gone += client.dropped
+        client.close()
+
+    def close(self) -> None:
+        """Stop serving: end every stream, the pusher and the listener (idempotent)."""
+        if self._closing.is_set():
+            return
+        with self._cond:
+            self._closing.set()
+            self._cond.notify_all()
+        with self._lock:
+            clients = list(self._clients)
+        for c in clients:
+            c.close()
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        for t in self._threads:
+            t.join()
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def __init__(self, host: str, port: int, live: LiveView):
+        try:
+            info = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except socket.gaierror as exc:
+            raise ValueError(f"--http: cannot resolve the host {host!r}: {exc.strerror}") from None
+        self.address_family = info[0][0]
+        self.live = live
+        super().__init__(info[0][4][:2], _Handler)
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    timeout = SOCKET_TIMEOUT_S
+    server_version = "minority-live"
+
+    def log_message(self, format, *args) -> None:  # noqa: A002 - the base class's name
+        pass  # a request log would drown the daemon's own lines
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's name
+        live = self.server.live
+        path = urlsplit(self.path).path
+        if live.loopback and not self._local_host():
+            return self._send(403, b"this live view answers to localhost only\n", "text/plain")
+        if path in ("/", "/index.html"):
+            return self._send(200, live.page, "text/html; charset=utf-8")
+        if path == "/events":
+            return self._stream(live)
+        if path == "/api/state":
+            return self._json(live.state())
+        if path == "/api/index":
+            return self._json(live_files.run_index(live.out_dir))
+        if path.startswith("/live/") and path.endswith(".png") and path.count("/") == 3:
+            _, _, run, view = path.split("/")
+            png = live.newest_png(run, view.removesuffix(".png"))
+            if png is not None:
+                return self._send(200, png, "image/png")
+        elif path == "/files" or path.startswith("/files/"):
+            return self._file(live.out_dir, path.removeprefix("/files").lstrip("/"))
+        self._send(404, b"not found\n", "text/plain")
+
+    def _local_host(self) -> bool:
+        """The Host header names this machine's loopback (no DNS-rebinding page reads it)."""
+        host = (self.headers.get("Host") or "").strip()
+        if host.startswith("["):
+            host = host[1:host.find("]")]
+        else:
+            host = host.rsplit(":", 1)[0]
+        return host in LOOPBACK_NAMES or host.startswith("127.")
+
+    def _send(self, status: int, body: bytes, ctype: str, extra: dict | None = None) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        for k, v in (extra or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, obj: dict) -> None:
+        self._send(200, json.dumps(obj, separators=(",", ":")).encode(), "application/json")
+
+    def _stream(self, live: LiveView) -> None:
+        client = live.subscribe(self.connection)
+        if client is None:
+            return self._send(503, b"too many live streams\n", "text/plain")
+        try:
+            self.send_response(200)
+            self.send_header("Content-Type", "text/event-stream")
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.write(b"retry: 2000\n\n")
+            reported = 0
+            while not client.closed:
+                data = client.get(KEEPALIVE_S)
+                if client.dropped != reported:  # tell the page it missed some
+                    reported = client.dropped
+                    self.wfile.write(sse("dropped", {"dropped": reported}))
+                self.wfile.write(data if data is not None else b": keep-alive\n\n")
+                client.written += data is not None
+        except OSError:  # the browser left, or took nothing for SOCKET_TIMEOUT_S
+            pass
+        finally:
+            live.unsubscribe(client)
+
+    def _file(self, root: Path, rel: str) -> None:
+        target = live_files.resolve_in(root, rel)
+        if target is None:
+            return self._send(404, b"no such file under the output directory\n", "text/plain")
+        if target.is_dir():
+            if rel and not rel.endswith("/"):
+                return self._send(301, b"", "text/plain", {"Location": self.path + "/"})
+            return self._send(200, live_files.directory_page(root, target),
+                              "text/html; charset=utf-8")
+        try:
+            f = open(target, "rb")  # noqa: SIM115 - closed below, after the response
+        except OSError:
+            return self._send(404, b"cannot read that file\n", "text/plain")
+        with f:
+            size = f.seek(0, 2)
+            span = live_files.byte_range(self.headers.get("Range"), size)
+            if span == "unsatisfiable":
+                return self._send(416, b"", "text/plain", {"Content-Range": f"bytes */{size}"})
+            start, end = span or (0, size)
+            self.send_response(206 if span else 200)
+            self.send_header("Content-Type", live_files.content_type(target))
+            self.send_header("Content-Length", str(end - start))
+            self.send_header("Accept-Ranges", "bytes")
+            self.send_header("X-Content-Type-Options", "nosniff")
+            if span:
+                self.send_header("Content-Range", f"bytes {start}-{end - 1}/{size}")
+            self.end_headers()
+            f.seek(start)
+            left = end - start
+            while left > 0 and (block := f.read(min(left, 1 << 16))):
+                self.wfile.write(block)  # a browser that leaves: the server ends the request
+                left -= len(block)

@@ -85,6 +85,14 @@ def _serve_parser(sub) -> None:
     p.add_argument("--exit-when-done", action="store_true",
                    help="exit once every rank of each run is done and its last step rendered "
                         "(for batch jobs and the demo; without it: serve until stopped)")
+    p.add_argument("--http", metavar="[HOST:]PORT",
+                   help="also serve a live view to a browser at http://HOST:PORT/ (HOST "
+                        "default 127.0.0.1, PORT 0: a free one; the URL is printed): the "
+                        "newest frame of every view as it is rendered, the ranks' stats "
+                        "against the spec's predicted events, per-step receive/setup/render "
+                        "times, and an index of DIR's runs (frames, movies, reports, scores, "
+                        "read-only). No password: name another address than loopback only "
+                        "on a trusted network (default: off)")
     _add_network(p)
     p.set_defaults(func=_cmd_serve, kernels=True)
 
@@ -108,6 +116,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.record and len(specs) > 1:
         return fail("serve", "--record names one log: with several specs each run logs to "
                              "DIR/{run}.mcap", BAD_INPUT)
+    live = None
+    if args.http is not None:  # bound before anything starts: a bad address exits at once
+        from minority.render_server.live import LiveView, parse_address
+        try:
+            live = LiveView(args.out, *parse_address(args.http))
+        except ValueError as exc:
+            return fail("serve", exc, BAD_INPUT)
+        except OSError as exc:
+            return fail("serve", f"--http {args.http}: cannot listen there: "
+                                 f"{exc.strerror or exc}", BAD_INPUT)
+        print(f"live view: {live.url}" + ("" if live.loopback else
+              " (no password: anyone who can reach this address sees the runs and DIR)"),
+              file=sys.stderr, flush=True)
     opts = options_from_args(args)
     # the server's own large puts are frames: a pool for the largest raw image
     opts.shm_pool_bytes = shm_pool_for(max((3 * v.width * v.height for s in specs
@@ -116,6 +137,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         session = open_session(opts, Role.SERVER)
     except (zenoh.ZError, OSError) as exc:
         print(f"minority serve: cannot open the zenoh session: {exc}", file=sys.stderr)
+        if live is not None:
+            live.close()
         return FAILED
     servers = []
     try:
@@ -124,9 +147,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             record = None if args.no_record else (args.record or args.out / f"{spec.run}.mcap")
             if record is not None:
                 parent_made(record)
-            servers.append(RenderServer(session, ServerOptions(spec, args.out, record,
-                                                               args.timeout,
-                                                               shadows=args.shadows)))
+            servers.append(RenderServer(session, ServerOptions(
+                spec, args.out, record, args.timeout, shadows=args.shadows,
+                observer=live.observe if live is not None else None)))
             run = servers[-1].current
             print(f"serving run {spec.run!r}: {len(spec.views)} views, frames to "
                   f"{run.frames_dir}/" + (f", log {run.writer.path}" if run.writer else ""),
@@ -136,6 +159,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         for s in servers:
             s.close()
         session.close()
+        if live is not None:
+            live.close()
         return FAILED
     stop = _stop_on_signals()
     try:
@@ -147,8 +172,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         for s in servers:
             s.close()
         session.close()
+        if live is not None:
+            live.close()
     for s in servers:
         print(f"stopped: {s.summary()}", file=sys.stderr)
+    if live is not None and live.dropped:
+        print(f"live view: {live.dropped} updates dropped for slow browsers", file=sys.stderr)
     return 0
 
 
@@ -194,6 +223,13 @@ def _sim_parser(sub) -> None:
                    help="each rank publishes flow statistics (speed histograms, kinetic energy, "
                         "displacement; for the oracle's score) every S s of simulated time "
                         "(0: none)")
+    p.add_argument("--no-context", action="store_true",
+                   help="send only the particles in the spec's regions: the server draws "
+                        "nothing outside them (default: the particles outside are sent once, "
+                        "and again when they move, for the server to draw from its cache)")
+    p.add_argument("--context-tolerance", type=float, metavar="M",
+                   help="resend a particle outside the regions once it moved this far, m "
+                        "(default: 5 %% of the particle spacing)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     _add_network(p)
     p.set_defaults(func=_cmd_sim, kernels=True)
@@ -240,8 +276,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             from minority.sim.publish import PublishOptions
 
             record = parent_made(args.record) if args.record else None
-            publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
-                                     record=record, stats_every_s=args.stats_every_s)
+            try:
+                publish = PublishOptions(network=options_from_args(args), spec_file=args.spec,
+                                         record=record, stats_every_s=args.stats_every_s,
+                                         context=not args.no_context,
+                                         context_tolerance_m=args.context_tolerance)
+            except ValueError as exc:
+                return fail("sim", exc, BAD_INPUT)
         out = parent_made(args.out or Path(f"{scene.stem}.h5"))
         config = RankRunConfig(scene_path=scene, out=out,
                                dt=args.dt, threads=args.threads,

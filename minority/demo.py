@@ -6,7 +6,8 @@
 2. the render server in its own process, listening on loopback;
 3. the MPM column collapse on 2 ranks (MPI), publishing only what the spec asks for, plus
    in situ statistics;
-4. frames and the MCAP log from the server; the timing report and the oracle's score.
+4. frames and the MCAP log from the server; the timing report and the oracle's score;
+   a movie of each view and a small animation of it, beside the view's frames.
 """
 
 from __future__ import annotations
@@ -147,6 +148,7 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
 
 
 def main(o: DemoOptions) -> int:
+    from minority.movie import frame_folders, write_movies
     from minority.protocol.spec import Spec
     from minority.report import report
     from minority.score import load_run, markdown, score
@@ -161,6 +163,8 @@ def main(o: DemoOptions) -> int:
     result = score(Spec.load(spec_path), load_run(log_path))
     (o.out / "score.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
     (o.out / "score.md").write_text(markdown(result))
+    write_movies(frame_folders(o.out / "frames" / RUN), o.out / "frames" / RUN,
+                 progress=say)
     say("done")
     print(markdown(result))
     print(WHERE.format(out=o.out, run=RUN))
@@ -174,6 +178,8 @@ WHERE = """Files (in {out}/):
   oracle/preview.png    the spec's views rendered on the prediction
   spec.json             the oracle spec the server rendered (edit it and replay the log)
   frames/{run}/VIEW/*.png  the frames the render server ray-traced during the run
+  frames/{run}/VIEW.mp4    those frames as a movie (H.264, one per frame at 10 fps)
+  frames/{run}/VIEW.webp   a small looping animation of them (320 px wide, under 1 MB)
   run.mcap              every message of the run (minority replay / report, MCAP viewers)
   sim.h5                the MPM run's own output frames
   report.md + *.png     receive / setup / render times per step and view

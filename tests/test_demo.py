@@ -2,21 +2,32 @@
 server process, 2 MPI ranks, frames, log, report and score; its log replays pixel-identical
 with its own spec."""
 
+import contextlib
+import io
 import json
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from minority.demo import RUN, DemoOptions, main
 from minority.replay import replay
 
 
-def test_small_demo_runs_end_to_end_and_replays_identically(tmp_path, capsys):
-    out = tmp_path / "demo"
+@pytest.fixture(scope="module")
+def small_demo(tmp_path_factory):
+    """The demo's out folder and what it printed."""
+    out = tmp_path_factory.mktemp("small") / "demo"
     o = DemoOptions(out=out, ranks=2, duration_s=0.3, cell_size_m=0.032, frames=12, width=160,
                     height=120, timeout_s=300)
-    assert main(o) == 0
-    printed = capsys.readouterr().out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(o) == 0
+    return out, printed.getvalue()
+
+
+def test_small_demo_runs_end_to_end_and_replays_identically(small_demo, tmp_path):
+    out, printed = small_demo
     assert "Oracle score" in printed and "run.mcap" in printed
     for name in ("spec.json", "run.mcap", "sim.h5", "report.md", "score.json",
                  "oracle/rollout.h5", "oracle/preview.png", "oracle/vtk/rollout.pvd",
@@ -38,3 +49,20 @@ def test_small_demo_runs_end_to_end_and_replays_identically(tmp_path, capsys):
 
     counts = validate_log(out / "run.mcap")  # every JSON message against its stored schema
     assert counts["minority.Spec"] >= 1 and counts["foxglove.CompressedImage"] == len(frames)
+
+
+def test_small_demo_writes_a_movie_and_an_animation_per_view(small_demo):
+    import imageio_ffmpeg
+
+    out, printed = small_demo
+    assert "VIEW.mp4" in printed and "VIEW.webp" in printed
+    for name in ("side", "top", "aerial"):
+        pngs = list((out / "frames" / RUN / name).glob("*.png"))
+        reader = imageio_ffmpeg.read_frames(str(out / "frames" / RUN / f"{name}.mp4"))
+        meta = next(reader)
+        assert meta["codec"] == "h264" and meta["size"] == (160, 120)
+        assert sum(1 for _ in reader) == len(pngs)  # one movie frame per frame
+        webp = out / "frames" / RUN / f"{name}.webp"
+        assert webp.stat().st_size < 1_000_000
+        with Image.open(webp) as im:
+            assert im.is_animated and im.size == (160, 120)  # under 320 px: not scaled

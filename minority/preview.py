@@ -2,7 +2,8 @@
 as one contact sheet PNG (a row per view, columns spread over the frames the view's
 schedule renders), so a person can judge cameras, windows, regions and colors before the
 full run. Rendered by the server's own code (render_server.frames.render_views): regions
-of interest and decimation applied as in the run.
+of interest and decimation applied as in the run, annotated as in the run (the domain's
+floor and walls from the rollout's bounds_m).
 """
 
 from __future__ import annotations
@@ -51,12 +52,23 @@ class RolloutStep:
     positions: np.ndarray  # [n, 3] float32, m
     fields: dict[str, np.ndarray]
     spacing_m: float
+    bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+
+def domain(bounds_m) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """A trajectory's bounds_m [3, 2] (lo, hi per axis, m) as the (lo, hi) corners a step
+    carries."""
+    b = np.asarray(bounds_m, dtype=np.float64).reshape(3, 2)
+    return tuple(map(float, b[:, 0])), tuple(map(float, b[:, 1]))
 
 
 def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, spacing_m: float,
-                  columns: int = 6, thumb_width: int = 256, log=None) -> Image.Image:
-    """positions [frames, n, 3] (m) -> the sheet: a row per view, up to `columns` frames."""
+                  columns: int = 6, thumb_width: int = 256, log=None,
+                  bounds_m: np.ndarray | None = None) -> Image.Image:
+    """positions [frames, n, 3] (m) -> the sheet: a row per view, up to `columns` frames;
+    bounds_m [3, 2] (m): the domain the annotations draw (None: no floor nor walls)."""
     log = sys.stderr if log is None else log  # the stream of the call, not of the import
+    box = None if bounds_m is None else domain(bounds_m)
     time_s = np.arange(len(positions)) * frame_interval_s
     ids = np.arange(positions.shape[1])  # rollout rows: decimation picks id % k == 0
     rows = []
@@ -72,7 +84,7 @@ def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, sp
                                np.ascontiguousarray(positions[k], np.float32),
                                {view.field: rollout_field(view.field, positions, k,
                                                           frame_interval_s),
-                                ID_FIELD: ids}, spacing_m)
+                                ID_FIELD: ids}, spacing_m, box)
             (shown,) = render_views(step, spec, canvases, views=[view])
             if shown.error:
                 raise ValueError(shown.error)
@@ -107,7 +119,8 @@ def preview(spec_path: Path, rollout_path: Path, out: Path, columns: int = 6,
     spec = Spec.load(spec_path)
     r = read_rollout(rollout_path)
     sheet = contact_sheet(spec, r["positions"], float(r["frame_interval_s"]),
-                          float(r["particle_spacing_m"]), columns, thumb_width)
+                          float(r["particle_spacing_m"]), columns, thumb_width,
+                          bounds_m=r["bounds_m"])
     out.parent.mkdir(parents=True, exist_ok=True)
     sheet.save(out)
     return out

@@ -214,6 +214,27 @@ class WindowDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     regions: tuple[Name, ...] = ()
 
 
+class Annotations(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """What the render server draws over a view's particles: a colorbar (the field's name,
+    unit and the view's range in its colormap), the simulated time and step, the domain's
+    floor and channel walls as light lines behind the particles (`context`), and the
+    domain's bounding box. In a spec: this object, or true (these defaults) or false (none)."""
+
+    colorbar: bool = True
+    time: bool = True
+    context: bool = True
+    bbox: bool = False
+
+    def to_json(self) -> bool | dict:
+        """The spec's form: true for the defaults, false for none, else the object."""
+        if self == Annotations():
+            return True
+        return False if self == NO_ANNOTATIONS else check.to_json(self)
+
+
+NO_ANNOTATIONS = Annotations(colorbar=False, time=False, context=False, bbox=False)
+
+
 class ViewDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A View as JSON (defaults as View's)."""
 
@@ -229,6 +250,7 @@ class ViewDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     occlusion_cull: bool = False
     schedule: Annotated[tuple[WindowDocument, ...], msgspec.Meta(min_length=1)] = (
         WindowDocument(),)
+    annotations: Annotations | bool = Annotations()
 
 
 ONE_WINDOW_KEYS = ("t_start_s", "t_end_s", "every_steps", "every_s", "regions")
@@ -274,6 +296,7 @@ class View:
     # send only particles this camera can see (hidden ones and those outside the image are
     # left out by the sim); the image is unchanged without shadows, which hidden ones cast
     occlusion_cull: bool = False
+    annotations: Annotations = Annotations()  # drawn over the image (NO_ANNOTATIONS: none)
 
     @classmethod
     def from_dict(cls, obj, where: str) -> View:
@@ -291,10 +314,13 @@ class View:
                             f"{v.range[1]}")
         cmap = (check_colormap_name(v.colormap, f"{where}.colormap") if isinstance(v.colormap, str)
                 else v.colormap.checked(f"{where}.colormap"))
+        notes = v.annotations
+        if isinstance(notes, bool):
+            notes = Annotations() if notes else NO_ANNOTATIONS
         return cls(v.name, v.camera.checked(f"{where}.camera"), v.width, v.height, v.background,
                    v.field, cmap, v.range, v.decimate,
                    tuple(Window.from_document(w, f"{where}.schedule[{i}]")
-                         for i, w in enumerate(v.schedule)), v.occlusion_cull)
+                         for i, w in enumerate(v.schedule)), v.occlusion_cull, notes)
 
     @property
     def t_start_s(self) -> float:
@@ -328,4 +354,7 @@ class View:
                              else self.colormap.to_dict()),
                 "range": list(self.range), "decimate": self.decimate,
                 **({"occlusion_cull": True} if self.occlusion_cull else {}),
-                "schedule": [w.to_dict() for w in self.schedule]}
+                "schedule": [w.to_dict() for w in self.schedule],
+                # the default is left out: a spec without the key encodes as before it existed
+                **({} if self.annotations == Annotations()
+                   else {"annotations": self.annotations.to_json()})}

@@ -6,7 +6,9 @@ when the window names none) and, with `decimate` k > 1, only those with id % k =
 step carries an `id` field (without one, the simulation already decimated by the request's
 stride, so what arrived is drawn). The acceleration structure is built once per distinct
 particle subset of the step, not once per view; its setup time is charged to every view
-that uses it. A view whose subset is empty shows the background.
+that uses it. A view whose subset is empty shows the background. Each image is annotated
+(render_server.overlay: colorbar, time and step, the domain's floor and walls) as its view's
+`annotations` ask, before it is encoded.
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ from typing import Protocol
 import numpy as np
 from minority.protocol.errors import SpecError
 from minority.protocol.spec import ID_FIELD, Region, Spec, View, inside_mask, render_radius_m
+from minority.protocol.view import NO_ANNOTATIONS
 from minority.render_server.colormap import view_colormap
+from minority.render_server.overlay import OVERLAYS, apply
 from minority.render_server.render import Canvas, Scene, encode_png, prepare, render
 
 # (regions or None for every particle, id stride or 1): what picks a view's particles
@@ -37,6 +41,9 @@ class StepLike(Protocol):
     # (optional, absent: False) True when the step holds every particle, those outside the
     # regions from the server's cache: a view then draws them all, not only its regions
     completed: bool
+    # (optional, absent: None) the simulation's domain, (lo, hi) corners in m: the floor and
+    # walls the annotations draw (render_server.overlay); None: unknown, not drawn
+    bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None
 
 
 @dataclass
@@ -48,7 +55,7 @@ class RenderedView:
     # until that canvas renders again); None when `error` says why not
     png: bytes
     setup_s: float  # picking the view's particles and building their acceleration structure, s
-    render_s: float  # image synthesis, s (PNG encoding excluded)
+    render_s: float  # image synthesis and annotation, s (PNG encoding excluded)
     particles: int  # particles the view shows
     error: str = ""
 
@@ -130,11 +137,15 @@ def render_views(step: StepLike, spec: Spec, canvases: dict[str, Canvas],
             canvas = canvases[view.name] = Canvas(view.width, view.height)
         t1 = time.perf_counter()
         if sub.scene is None:
-            image, count = background(view), 0
+            image, count, hit = background(view), 0, None
         else:
             values = step.fields[view.field]
             values = values if sub.index is None else values[sub.index]
             image, count = render(sub.scene, values, view, shadows, canvas), len(values)
+            hit = canvas.hit  # the pixels a particle covers, from the render just done
+        if view.annotations != NO_ANNOTATIONS:
+            overlay = OVERLAYS.get(view, getattr(step, "bounds_m", None))
+            apply(overlay, image, hit, step.step, step.time_s)
         render_s = time.perf_counter() - t1
         out.append(RenderedView(view, image, encode_png(image), sub.setup_s, render_s, count))
     return out

@@ -21,8 +21,9 @@ EMPTY = {"name": "empty", "lo_m": [5.0, 5.0, 5.0], "hi_m": [6.0, 6.0, 6.0]}
 
 
 def view(name, **kw) -> dict:
+    # annotations off: these tests compare the particles drawn (tests/test_overlay.py: the rest)
     return {"name": name, "camera": CAMERA, "width": 48, "height": 40, "field": "value",
-            "range": [0, 1], **kw}
+            "range": [0, 1], "annotations": False, **kw}
 
 
 def make_spec(*views, regions=(LEFT, CORNER, EMPTY)) -> Spec:

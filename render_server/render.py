@@ -76,15 +76,17 @@ def key_light(view: View) -> np.ndarray:
 
 @njit(parallel=True, cache=True, nogil=True)
 def _shade(f, width, height, hit_t, hit_id, metric, positions, radius, field, lut, vmin, vmax,
-           nan_rgb, light, shadowed, background, out):
-    """Lambert + ambient shading of every pixel into out [h * w, 3] uint8; hit_t in m along
-    unit rays (metric) or in camera depth along `pixel_ray_unnormalized`. Leaves hit_t and
-    hit_id cleared (inf, -1) for the next frame, saving a pass over the image."""
+           nan_rgb, light, shadowed, background, out, hit):
+    """Lambert + ambient shading of every pixel into out [h * w, 3] uint8, and hit [h * w]
+    bool: whether a particle covers the pixel; hit_t in m along unit rays (metric) or in
+    camera depth along `pixel_ray_unnormalized`. Leaves hit_t and hit_id cleared (inf, -1)
+    for the next frame, saving a pass over the image."""
     scale = (lut.shape[0] - 1) / (vmax - vmin) if vmax > vmin else 0.0
     for j in prange(height):
         for i in range(width):
             q = j * width + i
             p = hit_id[q]
+            hit[q] = p >= 0
             if p < 0:
                 out[q, 0], out[q, 1], out[q, 2] = background[0], background[1], background[2]
                 continue
@@ -148,6 +150,7 @@ class Canvas:
         self.clear = True  # hit buffers hold inf / -1 everywhere
         self.rgb = np.empty((width * height, 3), np.uint8)
         self.unshadowed = np.zeros(width * height, np.bool_)  # stays all False
+        self.hit = np.zeros(width * height, np.bool_)  # the last render: particle at pixel
 
 
 def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
@@ -172,7 +175,7 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
     _shade(frame, view.width, view.height, t, ids, shadows, scene.positions, scene.radius,
            field_columns(field), cmap.lut(), float(view.range[0]),
            float(view.range[1]), np.asarray(cmap.nan_color, np.float64), light, shadowed,
-           background, out)
+           background, out, canvas.hit)
     canvas.clear = True
     return out.reshape(view.height, view.width, 3)
 

@@ -11,7 +11,14 @@ import pytest
 from minority.protocol import Frame
 from minority.protocol.log import read_log
 from PIL import Image
-from test_replay import RUN, make_spec, recorded, view  # noqa: F401 - recorded: a fixture
+from test_replay import (  # noqa: F401 - recorded: a fixture
+    RECORDED,
+    RUN,
+    chunk,
+    make_spec,
+    recorded,
+    view,
+)
 
 from minority.cli import main
 from minority.movie import (
@@ -121,6 +128,13 @@ def test_animation_is_small_animated_and_as_long_as_the_movie(tmp_path):
     pictures, shown_ms, shape = animation(tmp_path / "a.webp")
     assert pictures == n > 1 and shape == size == (ANIMATION_WIDTH, 240)  # of 642x482 padded
     assert shown_ms == pytest.approx(6000, abs=n)  # 60 frames at 10 fps
+    # a tighter bound: a lower quality, then fewer pictures, each shown longer
+    n, size, nbytes = write_animation(frames, tmp_path / "b.webp", fps=10, max_bytes=150_000)
+    pictures, shown_ms, _ = animation(tmp_path / "b.webp")
+    assert nbytes <= 150_000 and 1 < pictures == n < 40
+    assert shown_ms == pytest.approx(6000, abs=n)
+    with pytest.raises(MovieError, match="does not fit in 1000 bytes"):
+        write_animation(frames[:4], tmp_path / "c.webp", max_bytes=1000)
 
 
 def test_pick_spreads_frames_and_keeps_both_ends():
@@ -190,3 +204,21 @@ def test_replay_movie_bad_input_and_failures(recorded, tmp_path, capsys):  # noq
     (tmp_path / "file").write_text("")  # --out names a file: nothing can be written there
     assert main(["replay", log, "--movie", "-q", "--out", str(tmp_path / "file")]) == 1
     assert "minority replay: error:" in capsys.readouterr().err
+
+
+def test_replay_movie_of_a_log_without_frames_re_renders_it(tmp_path, capsys):
+    from minority.protocol.log import LogWriter
+
+    path = tmp_path / "sim.mcap"  # what `minority sim --record` logs: a spec and chunks
+    with LogWriter(path) as log:
+        log.write(RECORDED)
+        for step in (0, 20, 40):
+            for rank in range(2):
+                log.write(chunk(step, rank))
+    assert main(["replay", str(path), "--movie", "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    assert "no frames of run replay-run: re-rendering with its spec" in captured.err
+    assert "3 steps replayed with the log's spec, 6 frames" in captured.out
+    for name in ("side", "top"):
+        meta, got = decoded(tmp_path / "out" / f"{name}.mp4")
+        assert meta["size"] == (48, 36) and len(got) == 3

@@ -31,7 +31,7 @@ ANIMATION_WIDTH = 320  # px
 ANIMATION_FRAMES = 40  # at most
 ANIMATION_MAX_BYTES = 1_000_000
 ANIMATION_QUALITIES = (80, 60, 40, 25)  # WebP quality tried in turn until under the bound
-MP4_QUALITY = 8  # imageio-ffmpeg's 1-10 scale; 8 is libx264 -crf 10
+MP4_QUALITY = 7  # imageio-ffmpeg's 1-10 scale: libx264 -crf 15 (mean error under 1 of 255)
 
 Source = Path | str | bytes | np.ndarray  # a PNG file, PNG bytes, or [h, w, 3|4] uint8
 

@@ -147,10 +147,13 @@ def write_mp4(frames: Sequence[Source], path: Path, fps: float = DEFAULT_FPS) ->
     try:
         for frame in frames:
             writer.send(padded(rgb(frame), width, height))
-    except OSError as exc:  # imageio-ffmpeg's: ffmpeg stopped reading (see its stderr)
-        raise RuntimeError(f"{path}: ffmpeg failed: {str(exc).splitlines()[0]}") from exc
-    finally:
-        writer.close()  # waits for ffmpeg to finish the file
+    except BaseException as exc:
+        writer.close()
+        path.unlink(missing_ok=True)  # no half movie left behind
+        if isinstance(exc, OSError):  # imageio-ffmpeg's: ffmpeg stopped reading (its stderr)
+            raise RuntimeError(f"{path}: ffmpeg failed: {str(exc).splitlines()[0]}") from exc
+        raise
+    writer.close()  # waits for ffmpeg to finish the file
     if path.stat().st_size == 0:
         raise RuntimeError(f"{path}: ffmpeg wrote nothing (its messages are above)")
     return width, height
@@ -160,6 +163,8 @@ def pick(n: int, most: int) -> list[int]:
     """At most `most` indices spread evenly over range(n), the first and last included."""
     if n <= most:
         return list(range(n))
+    if most < 2:
+        return [0][:most]
     return sorted({round(i * (n - 1) / (most - 1)) for i in range(most)})
 
 

@@ -106,8 +106,9 @@ def test_bad_frames_and_paths_are_named(tmp_path):
         write_mp4([], tmp_path / "none.mp4")
     with pytest.raises(MovieError, match=r"not an image"):
         write_mp4([b"not a png"], tmp_path / "junk.mp4")
-    with pytest.raises(MovieError, match=r"\[4, 4\] float64"):
-        write_mp4([np.zeros((4, 4))], tmp_path / "flat.mp4")
+    with pytest.raises(MovieError, match=r"\[8, 8, 3\] float64"):  # found while encoding
+        write_mp4([solid((0, 0, 0), 8, 8), np.zeros((8, 8, 3))], tmp_path / "float.mp4")
+    assert not (tmp_path / "float.mp4").exists()  # no half movie left behind
     (tmp_path / "file").write_text("")
     with pytest.raises(OSError):
         write_mp4([solid((0, 0, 0), 8, 8)], tmp_path / "file" / "m.mp4")  # a file as folder
@@ -138,7 +139,7 @@ def test_animation_is_small_animated_and_as_long_as_the_movie(tmp_path):
 
 
 def test_pick_spreads_frames_and_keeps_both_ends():
-    assert pick(5, 40) == [0, 1, 2, 3, 4]
+    assert pick(5, 40) == [0, 1, 2, 3, 4] and pick(5, 1) == [0]
     got = pick(100, 10)
     assert len(got) == 10 and got[0] == 0 and got[-1] == 99
     assert max(np.diff(got)) - min(np.diff(got)) <= 1

@@ -120,17 +120,22 @@ def replay_movies(path: Path, spec: Spec | None = None, out: Path | None = None,
     if spec is None:
         notes: list[LogNote] = []
         try:
-            run = log_run(path, log_specs(path, notes), run, notes)
+            specs = log_specs(path, notes)
+            run = log_run(path, specs, run, notes)
             frames = logged_frames(path, run, notes)
         finally:
             say_notes(notes, say)
         if frames:
-            result = MovieReplay(run, out, {v: len(f) for v, f in frames.items()},
+            for s in specs:  # a view of the run's specs that never got a frame: said so
+                for v in s.views if s.run == run else ():
+                    frames.setdefault(v.name, [])
+            result = MovieReplay(run, out, {v: len(f) for v, f in frames.items() if f},
                                  log_notes=notes)
             if vtk is not None:
                 result.replayed = replay(path, None, None, vtk, run, shadows, progress, say)
             for view, steps in frames.items():
-                (out / view).mkdir(parents=True, exist_ok=True)
+                if steps:
+                    (out / view).mkdir(parents=True, exist_ok=True)
                 for step, png in steps:
                     (out / view / f"{step:06d}.png").write_bytes(png)
             result.movies = write_movies({v: [png for _, png in f] for v, f in frames.items()},

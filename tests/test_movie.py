@@ -223,3 +223,25 @@ def test_replay_movie_of_a_log_without_frames_re_renders_it(tmp_path, capsys):
     for name in ("side", "top"):
         meta, got = decoded(tmp_path / "out" / f"{name}.mp4")
         assert meta["size"] == (48, 36) and len(got) == 3
+
+
+def test_replay_movie_says_which_views_logged_no_frame(tmp_path, capsys):
+    from minority.protocol.log import LogWriter
+
+    path = tmp_path / "frames.mcap"  # the spec's "top" view never got a frame
+    colours = {0: (200, 30, 30), 20: (30, 30, 200)}
+    with LogWriter(path) as log:
+        log.write(RECORDED)
+        for step in (20, 0, 20):  # out of order, and step 20 twice: its last frame counts
+            log.write(Frame(RUN, "side", step, step * 1e-4, 49, 37,
+                            png(solid(colours[step], 49, 37))))
+            colours[20] = (30, 200, 30)
+    assert main(["replay", str(path), "--movie", "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    assert "2 logged frames of 1 views" in captured.out
+    assert "movie top: no frames, no movie" in captured.err
+    meta, got = decoded(tmp_path / "out" / "side.mp4")
+    assert meta["size"] == (50, 38) and len(got) == 2
+    for image, colour in zip(got, [(200, 30, 30), (30, 200, 30)], strict=True):
+        np.testing.assert_allclose(image.reshape(-1, 3).mean(axis=0), colour, atol=TOLERANCE)
+    assert not (tmp_path / "out" / "top").exists() and not (tmp_path / "out" / "top.mp4").exists()

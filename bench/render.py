@@ -9,6 +9,12 @@ k-d bricks (and grids when shadows are on), render_s: ray casting and shading (P
 excluded), as the server's Timing messages report them, medians after WARMUP_STEPS steps.
 The reference paper's Galaxy totals were 0.224, 2.521 and 3.376 s per in situ step at 13k,
 100k and 1M particles.
+
+Then one line for the annotations (render_server.overlay) of the same view over the heap's
+domain, on a 13k-particle frame:
+{"bench": "overlay", "width", "height", "compose_s" (once per view), "apply_s" (median per
+frame: context, colorbar, time text), "context_px", "legend_px"}; --overlay-only prints just
+that line (no network).
 """
 
 from __future__ import annotations
@@ -19,12 +25,15 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 from minority.protocol import Chunk, Spec, Timing, decode_as, keys
 from minority.protocol.session import LOSSLESS_QOS, Inbox, NetworkOptions, Role, open_session, put
+from minority.render_server import overlay
 from minority.render_server.daemon import RenderServer, ServerOptions
+from minority.render_server.render import Canvas, prepare, render
 
 RUN = "bench-render"
 SIZES = {13_000: 20, 100_000: 15, 1_000_000: 12}  # particles -> steps
@@ -32,6 +41,8 @@ WARMUP_STEPS = 3  # dropped: shared-memory pool and page mapping warm up in a ne
 WIDTH, HEIGHT = 1024, 768
 HEAP_M = (0.6, 0.144, 0.32)  # runout length, channel width, initial height of the heap, m
 WAIT_S = 600.0
+DOMAIN_M = ((0.0, 0.0, 0.0), (1.0, 0.144, 0.4))  # the chunks' bounds: floor z = 0, walls y
+OVERLAY_FRAMES = 200  # frames the overlay is applied to (median)
 
 
 def heap(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
@@ -63,12 +74,33 @@ def sender(endpoint: str, n: int, first: int, steps: int) -> None:
     timing = Inbox(session, keys.timing(RUN))
     pos, disp, spacing = heap(n)
     for step in range(first, first + steps):
-        chunk = Chunk(RUN, step, step * 1e-4, 0, 1, spacing, ((0, 0, 0), (1, 0.144, 0.4)),
+        chunk = Chunk(RUN, step, step * 1e-4, 0, 1, spacing, DOMAIN_M,
                       {"positions": pos, "displacement": disp})
         put(session, keys.chunk(RUN, step, 0), chunk.encode(), LOSSLESS_QOS)
         if timing.get(timeout=WAIT_S) is None:
             raise SystemExit(f"bench render: no timing for step {step}")
     session.close()
+
+
+def bench_overlay(n: int = 13_000) -> dict:
+    """Compose the bench view's annotations once and apply them to a rendered frame again and
+    again (its hit mask: the particles hide the floor's lines); seconds."""
+    view = spec().views[0]
+    pos, disp, spacing = heap(n)
+    canvas = Canvas(view.width, view.height)
+    image = render(prepare(pos, 0.5 * spacing, grids=False), disp, view, canvas=canvas).copy()
+    t0 = time.perf_counter()
+    made = overlay.OverlayCache().get(view, DOMAIN_M)
+    compose_s = time.perf_counter() - t0
+    times = []
+    for k in range(OVERLAY_FRAMES):
+        frame = image.copy()
+        t0 = time.perf_counter()
+        overlay.apply(made, frame, canvas.hit, k, k * 1e-4)
+        times.append(time.perf_counter() - t0)
+    return {"bench": "overlay", "width": view.width, "height": view.height,
+            "compose_s": round(compose_s, 5), "apply_s": round(statistics.median(times), 6),
+            "context_px": len(made.context.index), "legend_px": len(made.legend.index)}
 
 
 def main() -> None:
@@ -77,11 +109,16 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="*", default=list(SIZES))
     parser.add_argument("--shadows", action="store_true",
                         help="shadow rays on: setup_s then includes the per-brick grids")
+    parser.add_argument("--overlay-only", action="store_true",
+                        help="only the annotations' line: compose once, apply per frame")
     parser.add_argument("--sender", nargs=4, metavar=("ENDPOINT", "N", "FIRST", "STEPS"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.sender:
         sender(args.sender[0], *map(int, args.sender[1:]))
+        return
+    if args.overlay_only:
+        print(json.dumps(bench_overlay()), flush=True)
         return
     endpoint = f"tcp/127.0.0.1:{args.port}"
     session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)
@@ -110,6 +147,7 @@ def main() -> None:
                               "total_s": round(sum(med.values()), 5)}), flush=True)
         server.close()
     session.close()
+    print(json.dumps(bench_overlay()), flush=True)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,8 @@ from minority.protocol.wire import Envelope, MessageKind, decode, encode, peek_k
 MAX_RANKS = 1 << 20
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 POSITIONS = "positions"
+CONTEXT_ID = "context_id"  # [context] int64: ids of a chunk's context rows (not a field)
+EVICT_ID = "evict_id"  # [evicted] int64: ids the server's cache drops (not a field)
 MAX_ABS_COORD_M = 1e12  # larger (or non-finite) header numbers are corrupt
 
 # Typed header metas, checked in C by msgspec on decode; the JSON Schemas stored in logs are
@@ -42,6 +44,12 @@ class ChunkMeta(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     spacing_m: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_ABS_COORD_M)]
     bounds_m: tuple[Corner, Corner]
     prev_time_s: Seconds | None = None  # the previous step's time (every_s cadences use it)
+    # the rank keeps the server's particle cache (render_server.particles): the last
+    # `context` rows are context rows, `evicted` ids leave the cache, a reset first drops
+    # every cached row the rank sent (None: it does not; every row is fresh)
+    context: Count | None = None
+    evicted: Count = 0
+    context_reset: bool = False
 
 
 class FrameMeta(msgspec.Struct, forbid_unknown_fields=True):
@@ -60,6 +68,12 @@ class Chunk:
 
     fields: name -> array with first dimension n; `positions` [n, 3] float32 (m) is required,
     other fields are [n] or [n, k] (e.g. `displacement` [n, 3] float32 m).
+
+    Context (a rank that keeps the render server's particle cache; None otherwise): the last
+    len(context_ids) rows are particles outside the step's regions, sent once so the server
+    draws them until they change; `context_ids` [k] int64 are their ids, `evict_ids` [e]
+    int64 the cached particles the server must forget (they entered the regions or left
+    the rank), and `context_reset` drops every cached row of this rank before the rest.
     """
 
     KIND: ClassVar[MessageKind] = MessageKind.CHUNK
@@ -74,19 +88,30 @@ class Chunk:
     fields: dict[str, np.ndarray]
     sent_ns: int = 0
     prev_time_s: float | None = None  # simulated time of the step before, s (None: not known)
+    context_ids: np.ndarray | None = None  # [k] int64, the last k rows (None: no context)
+    evict_ids: np.ndarray | None = None  # [e] int64
+    context_reset: bool = False
 
     @property
     def count(self) -> int:
         return int(self.fields[POSITIONS].shape[0])
 
     @property
+    def fresh(self) -> int:
+        """Rows sent because the step needs them now (the rest are context rows)."""
+        return self.count - (0 if self.context_ids is None else len(self.context_ids))
+
+    @property
     def positions(self) -> np.ndarray:
         return self.fields[POSITIONS]
 
     def meta(self) -> ChunkMeta:
+        tracked = self.context_ids is not None
         return ChunkMeta(self.run, self.step, self.time_s, self.rank, self.ranks, self.count,
                          self.spacing_m, (tuple(self.bounds_m[0]), tuple(self.bounds_m[1])),
-                         self.prev_time_s)
+                         self.prev_time_s, len(self.context_ids) if tracked else None,
+                         len(self.evict_ids) if tracked and self.evict_ids is not None else 0,
+                         self.context_reset and tracked)
 
     def encode(self) -> bytearray:
         pos = self.fields.get(POSITIONS)
@@ -94,6 +119,13 @@ class Chunk:
             raise ProtocolError("chunk needs a 'positions' field of shape [n, 3]")
         fields = {POSITIONS: np.asarray(pos, dtype=np.float32)}
         fields.update((k, v) for k, v in self.fields.items() if k != POSITIONS)
+        if self.context_ids is not None:
+            if len(self.context_ids) > len(pos):
+                raise ProtocolError(f"chunk has {len(self.context_ids)} context ids for "
+                                    f"{len(pos)} rows")
+            fields[CONTEXT_ID] = np.asarray(self.context_ids, dtype="<i8")
+            if self.evict_ids is not None and len(self.evict_ids):
+                fields[EVICT_ID] = np.asarray(self.evict_ids, dtype="<i8")
         return encode(self.KIND, self.meta(), fields, self.sent_ns or None)
 
     @classmethod
@@ -111,13 +143,38 @@ class Chunk:
         if pos.dtype != np.float32 or pos.shape != (count, 3):
             raise ProtocolError(f"chunk positions must be [{count}, 3] float32, "
                                 f"got {list(pos.shape)} {pos.dtype}")
-        for name, array in env.arrays.items():
+        arrays = dict(env.arrays)
+        context_ids, evict_ids = _context_arrays(m, arrays)
+        for name, array in arrays.items():
             if array.ndim not in (1, 2) or array.shape[0] != count:
                 raise ProtocolError(f"field {name!r} has shape {list(array.shape)}; "
                                     f"expected [{count}] or [{count}, k]")
         env.check_finite()
         return cls(m.run, m.step, m.time_s, m.rank, m.ranks, m.spacing_m, (lo, hi),
-                   dict(env.arrays), env.sent_ns, m.prev_time_s)
+                   arrays, env.sent_ns, m.prev_time_s, context_ids, evict_ids,
+                   m.context_reset)
+
+
+def _context_arrays(m: ChunkMeta, arrays: dict[str, np.ndarray]
+                    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Take a chunk's context and eviction ids out of `arrays`, checked against its header."""
+    ids = arrays.pop(CONTEXT_ID, None)
+    evict = arrays.pop(EVICT_ID, None)
+    if m.context is None:
+        if ids is not None or evict is not None or m.evicted or m.context_reset:
+            raise ProtocolError("chunk has context ids, evictions or a reset but no "
+                                "chunk.context count")
+        return None, None
+    if m.context > m.count:
+        raise ProtocolError(f"chunk.context {m.context} exceeds chunk.count {m.count}")
+    for name, array, n in ((CONTEXT_ID, ids, m.context), (EVICT_ID, evict, m.evicted)):
+        if n and array is None:
+            raise ProtocolError(f"chunk header counts {n} {name} but the array is missing")
+        if array is not None and (array.dtype != np.dtype("<i8") or array.shape != (n,)):
+            raise ProtocolError(f"chunk {name} must be [{n}] int64, got "
+                                f"{list(array.shape)} {array.dtype}")
+    empty = np.zeros(0, dtype="<i8")
+    return (ids if ids is not None else empty), (evict if evict is not None else empty)
 
 
 class _Stamp(msgspec.Struct, forbid_unknown_fields=True):
@@ -253,6 +310,11 @@ class TimingMeta(msgspec.Struct, forbid_unknown_fields=True):
     ranks_expected: Count = 0
     ranks_received: Count = 0
     incomplete: bool = False
+    # of `particles`: drawn from the server's cache (sent at an earlier step, outside the
+    # regions), and the age of the oldest of them, s of simulated time and steps
+    cached: Count = 0
+    cache_age_s: NonNegative = 0.0
+    cache_age_steps: Count = 0
 
 
 class Timing(TimingMeta, _JsonMessage):

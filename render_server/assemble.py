@@ -39,8 +39,21 @@ class PendingStep:
 
 
 @dataclass
+class ChunkContext:
+    """A chunk's update of the server's particle cache (render_server.particles)."""
+
+    rank: int
+    ids: np.ndarray  # [k] int64
+    positions: np.ndarray  # [k, 3] float32, m
+    fields: dict[str, np.ndarray]  # the step's merged fields, [k] or [k, c]
+    evict: np.ndarray  # [e] int64
+    reset: bool
+
+
+@dataclass
 class AssembledStep:
-    """All particles of one step, merged over ranks."""
+    """All particles of one step, merged over ranks (the fresh rows: context rows of the
+    chunks are in `context`, for the particle cache)."""
 
     step: int
     time_s: float
@@ -55,6 +68,13 @@ class AssembledStep:
     prev_time_s: float | None = None  # simulated time of the step before, s (None: unknown)
     # the simulation's domain (lo, hi corners, m): the union of the chunks' bounds
     bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    context: list[ChunkContext] = field(default_factory=list)
+    tracked: bool = False  # every chunk keeps the cache (it may complete the step)
+    # set by the particle cache: every particle present, those drawn from it, their age
+    completed: bool = False
+    cached: int = 0
+    cache_age_s: float = 0.0  # simulated s since the oldest cached row was sent
+    cache_age_steps: int = 0
 
 
 @dataclass
@@ -165,7 +185,12 @@ class StepAssembler:
         def join(arrays: list[np.ndarray]) -> np.ndarray:
             return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)  # no copy for one
 
-        merged = {k: join([c.fields[k] for c in chunks]) for k in sorted(names)}
+        merged = {k: join([c.fields[k][:c.fresh] for c in chunks]) for k in sorted(names)}
+        context = [ChunkContext(c.rank, c.context_ids, c.positions[c.fresh:],
+                                {k: c.fields[k][c.fresh:] for k in names},
+                                c.evict_ids, c.context_reset)
+                   for c in chunks if c.context_ids is not None and (
+                       len(c.context_ids) or len(c.evict_ids) or c.context_reset)]
         # receive time from the senders' stamps (one host, or synchronized clocks); from the
         # first arrival when a stamp is missing or lies in the future (clock skew)
         start_ns = p.first_sent_ns if 0 < p.first_sent_ns <= p.first_ns else p.first_ns
@@ -175,7 +200,8 @@ class StepAssembler:
         hi = tuple(float(max(c.bounds_m[1][i] for c in chunks)) for i in range(3))
         return AssembledStep(
             step=step, time_s=p.time_s,
-            positions=join([c.positions for c in chunks]), fields=merged,
+            positions=join([c.positions[:c.fresh] for c in chunks]), fields=merged,
             spacing_m=chunks[0].spacing_m, ranks_expected=p.ranks, ranks_received=len(chunks),
             nbytes=p.nbytes, receive_s=(now_ns - start_ns) * 1e-9,
-            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev, bounds_m=(lo, hi))
+            incomplete=incomplete or len(chunks) < p.ranks, prev_time_s=prev, bounds_m=(lo, hi),
+            context=context, tracked=all(c.context_ids is not None for c in chunks))

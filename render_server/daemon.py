@@ -39,6 +39,7 @@ from minority.render_server.assemble import (
     StepAssembler,
 )
 from minority.render_server.frames import render_views
+from minority.render_server.particles import complete_step
 from minority.render_server.render import Canvas, prepare, render
 from minority.render_server.runs import LogQueue, RunInstance, ServerStats, instance_paths, open_writer
 
@@ -310,7 +311,12 @@ class RenderServer:
                 inst.drained = True
 
     def _release(self, steps: list[AssembledStep]) -> None:
+        """Complete each released step from the run's particle cache (every step, in
+        release order: a skipped step's context still counts), then offer it to render."""
         for step in steps:
+            t0 = time.perf_counter()
+            step = complete_step(self._run.cache, step)
+            step.receive_s += time.perf_counter() - t0
             self._latest.put(step)
 
     def _settle_gone_ranks(self, inst: RunInstance) -> None:
@@ -368,7 +374,9 @@ class RenderServer:
             self._publish(inst, keys.frame(self.run, view.name), frame, FRAME_QOS)
             timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s,
                             r.setup_s, r.render_s, step.nbytes, len(step.positions),
-                            step.ranks_expected, step.ranks_received, step.incomplete)
+                            step.ranks_expected, step.ranks_received, step.incomplete,
+                            cached=step.cached, cache_age_s=step.cache_age_s,
+                            cache_age_steps=step.cache_age_steps)
             self._publish(inst, keys.timing(self.run), timing, CONTROL_QOS)
             inst.stats.frames += 1
         inst.stats.steps_rendered += 1

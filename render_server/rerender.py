@@ -34,6 +34,7 @@ from minority.protocol.view import INSTANT_TOLERANCE
 from minority.protocol.vtkseries import VtkSeries
 from minority.render_server.assemble import AssembledStep, StepAssembler
 from minority.render_server.frames import render_views
+from minority.render_server.particles import ParticleCache, complete_step
 
 Topic = keys.Topic
 MAX_PENDING_STEPS = 64  # steps assembled at once; past that the oldest is released incomplete
@@ -105,6 +106,14 @@ def recorded_steps(path: Path, run: str, assembler: StepAssembler,
         yield step, spec
 
 
+def completed_steps(steps: Iterator[tuple[AssembledStep, Spec | None]]
+                    ) -> Iterator[tuple[AssembledStep, Spec | None]]:
+    """The steps completed from a particle cache, as the server completed them."""
+    cache = ParticleCache()
+    for step, spec in steps:
+        yield complete_step(cache, step), spec
+
+
 def covered(boxes: tuple[Region, ...], by: tuple[Region, ...]) -> bool:
     """Whether the union of `by` holds every box of `boxes` (exact: each box is cut by the
     planes of `by` and the centre of every cell must lie in some box of `by`)."""
@@ -137,7 +146,8 @@ def missing_data(spec: Spec, view: View, step: AssembledStep, recorded: Spec | N
     if not request:
         return ""  # the recorded spec did not ask for this step: nothing to check against
     wanted = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
-    if request.regions is not None and (wanted is None or not covered(wanted, request.regions)):
+    if request.regions is not None and not step.completed and (
+            wanted is None or not covered(wanted, request.regions)):
         shown = "every particle" if wanted is None else f"regions {_names(wanted)}"
         return (f"it shows {shown}; the simulation sent only the particles in regions "
                 f"{_names(request.regions)}")
@@ -211,7 +221,7 @@ def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
     assembler = StepAssembler(max_pending=MAX_PENDING_STEPS)  # no timeouts: never expired
     canvases: dict = {}
     seen: list[tuple[int, float, float | None]] = []
-    for step, recorded in recorded_steps(path, run, assembler, notes):
+    for step, recorded in completed_steps(recorded_steps(path, run, assembler, notes)):
         summary.steps += 1
         seen.append((step.step, step.time_s, step.prev_time_s))
         if step.incomplete:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from minority.protocol.log import LogWriter
 from minority.render_server.assemble import StepAssembler
+from minority.render_server.particles import ParticleCache
 
 IDLE_FLUSH_S = 0.5  # an idle log queue completes its open MCAP chunks this often
 
@@ -56,6 +57,7 @@ class RunInstance:
         self.frames_dir = frames_dir
         self.writer = writer
         self.assembler = assembler
+        self.cache = ParticleCache()  # particles outside the regions, by id
         self.stats = ServerStats()
         self.started_ns = time.time_ns()
         self.ranks_expected = 0  # from the chunks' rank count and the live tokens

@@ -1,10 +1,10 @@
 """What a rank's messages carry: the culled particle fields of a chunk and the flow
 statistics of a Stats message.
 
-* `cull` picks the particles inside the requested regions (all when none), keeps every
-  `decimate`-th of them by original id (`pid % decimate == 0`), and computes only the
-  requested fields (`SIM_FIELDS`), float32 (int64 for `id`). Bytes per particle:
-  `particle_bytes`.
+* `cull_rows` picks the particles inside the requested regions (all when none), keeps every
+  `decimate`-th of them by original id (`pid % decimate == 0`); `chunk_fields` computes
+  only the requested fields (`SIM_FIELDS`) of given rows, float32 (int64 for `id`);
+  `cull` is both. Bytes per particle: `particle_bytes`.
 * `flow_stats` sums up a rank's particles for a `Stats` message (minority/{run}/stats):
   count, sum of |v|^2, max |v|, max |x - x0|, and the speed histograms of the particles
   inside the regions of the spec's open windows and elsewhere.
@@ -52,10 +52,19 @@ def particle_bytes(fields) -> int:
 def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict[str, np.ndarray]:
     """Chunk fields for one request: `positions` [m, 3] float32 (m) and each requested
     field the simulation knows (unknown names are skipped; the caller reports them), of
-    the m particles inside the request's regions (all n when it has none) whose original
-    id is a multiple of the request's `decimate` and, when the request names views to cull
-    for, that may show in one of them as spheres of `radius_m` (m; sim.visibility)."""
-    keep = None if request.regions is None else inside_mask(ps.x, request.regions)
+    the m particles `cull_rows` keeps."""
+    return chunk_fields(ps, cull_rows(ps, request, radius_m), request.fields)
+
+
+def cull_rows(ps: ParticleState, request: DataRequest, radius_m: float = 0.0,
+              inside: np.ndarray | None = None) -> np.ndarray | None:
+    """Rows [m] of the particles a request needs now, None for all n: those inside the
+    request's regions (all when it has none; `inside` [n] bool when the caller computed
+    it), whose original id is a multiple of its `decimate` and, when the request names views
+    to cull for, that may show in one of them as spheres of `radius_m` (m; sim.visibility)."""
+    keep = None
+    if request.regions is not None:
+        keep = inside if inside is not None else inside_mask(ps.x, request.regions)
     if request.decimate > 1:
         every = ps.pid % request.decimate == 0
         keep = every if keep is None else keep & every
@@ -72,16 +81,22 @@ def cull(ps: ParticleState, request: DataRequest, radius_m: float = 0.0) -> dict
             sub = np.flatnonzero(own)
             seen[sub[visible_mask(x[sub], view, radius_m)]] = True
         idx = rows[seen]
+    return idx
 
+
+def chunk_fields(ps: ParticleState, rows: np.ndarray | None,
+                 names: tuple[str, ...] | list[str]) -> dict[str, np.ndarray]:
+    """`positions` [m, 3] float32 (m) and the known fields of `names` (float32; int64 for
+    `id`) of the particles at `rows` [m] (None: all n)."""
     def take(a: np.ndarray) -> np.ndarray:
-        return a if idx is None else a[idx]
+        return a if rows is None else a[rows]
 
     x = take(ps.x)
     out = {"positions": x.astype(np.float32)}
-    fields = set(request.fields)
-    d = x - take(ps.x0) if fields & {"displacement", "displacement_magnitude"} else None
-    v = take(ps.v) if fields & {"velocity", "velocity_magnitude"} else None
-    for name in request.fields:
+    wanted = set(names)
+    d = x - take(ps.x0) if wanted & {"displacement", "displacement_magnitude"} else None
+    v = take(ps.v) if wanted & {"velocity", "velocity_magnitude"} else None
+    for name in names:
         if name in ("displacement", "displacement_magnitude"):
             out[name] = (d if name == "displacement" else np.linalg.norm(d, axis=1)).astype(np.float32)
         elif name in ("velocity", "velocity_magnitude"):

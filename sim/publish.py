@@ -79,6 +79,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
 import zenoh
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError, SpecError
@@ -89,8 +90,9 @@ from minority.protocol.messages import (
     decode_as,
 )
 from minority.protocol.session import NetworkOptions, QoS, Role, open_session, put
-from minority.protocol.spec import DataRequest, Spec, render_radius_m
+from minority.protocol.spec import DataRequest, Spec, inside_mask, render_radius_m
 from minority.protocol.view import Window
+from minority.sim.context import DEFAULT_TOLERANCE_FRACTION, ContextSplit, ContextTracker
 from minority.sim.outbox import (
     CHUNK,
     CONTROL,
@@ -101,7 +103,7 @@ from minority.sim.outbox import (
     Outbox,
     OutboxItem,
 )
-from minority.sim.payload import SIM_FIELDS, cull, flow_stats
+from minority.sim.payload import SIM_FIELDS, chunk_fields, cull_rows, flow_stats
 from minority.sim.state import ParticleState
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
@@ -138,11 +140,19 @@ class PublishOptions:
     outbox_bytes: int = OUTBOX_BYTES
     outbox_stats: int = OUTBOX_STATS
     stats_every_s: float = STATS_EVERY_S  # s of simulated time between Stats; 0: none
+    # send the particles outside the regions as context rows the server caches (complete
+    # pictures; sim.context), again when one moved more than the tolerance (m; None:
+    # DEFAULT_TOLERANCE_FRACTION of the particle spacing)
+    context: bool = True
+    context_tolerance_m: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.stats_every_s) and self.stats_every_s >= 0.0):
             raise ValueError(f"stats_every_s must be a finite number of seconds >= 0 (0: no "
                              f"stats), got {self.stats_every_s}")
+        tol = self.context_tolerance_m
+        if tol is not None and not (math.isfinite(tol) and tol >= 0.0):
+            raise ValueError(f"the context tolerance must be a finite length >= 0 m, got {tol}")
 
 
 @dataclass
@@ -175,6 +185,12 @@ class PublishStats:
     stats_dropped: int = 0  # due but not put (no server or subscriber, outbox full, stalled,
     #                         refused, exit) or put but unconfirmed when a stall came
     stats_s: float = 0.0  # simulation-thread time computing, encoding, queueing Stats, s
+    # context rows (particles outside the regions, for the server's cache; part of
+    # particles_sent when their chunk was sent), evicted ids, resets (first step, a spec
+    # change, a dropped chunk)
+    context_rows: int = 0
+    context_evicted: int = 0
+    context_resets: int = 0
 
     @property
     def dropped(self) -> int:
@@ -232,6 +248,11 @@ class RankPublisher:
         self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
         self._stats_cadence = (Window(every_s=options.stats_every_s)
                                if options.stats_every_s > 0 else None)
+        tolerance = options.context_tolerance_m
+        self._context = (ContextTracker(DEFAULT_TOLERANCE_FRACTION * spacing_m
+                                        if tolerance is None else tolerance)
+                         if options.context else None)
+        self._context_stale = False  # set by a spec change or a dropped chunk: reset it
         self._prev: tuple[int, float] | None = None  # (step, time_s) of the last publish call
         self._token = None
         self._spec_sub = None
@@ -335,6 +356,7 @@ class RankPublisher:
             return
         if spec.run == self.run and spec != self.spec:
             self.spec = spec
+            self._context_stale = True
             self._outbox.put(OutboxItem(keys.spec(self.run), spec.encode(), CONTROL,
                                    publish=False))
 
@@ -374,15 +396,42 @@ class RankPublisher:
                 self.stats.missing_fields.append(name)
                 print(f"rank {self.rank}: the spec asks for field {name!r}, which the simulation "
                       f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
-        fields = cull(ps, request, render_radius_m(self.spec, self.spacing_m))
+        inside = None if request.regions is None else inside_mask(ps.x, request.regions)
+        rows = cull_rows(ps, request, render_radius_m(self.spec, self.spacing_m), inside)
+        context = self._split_context(ps, request, inside)
+        if context is not None and len(context.rows):
+            rows = np.concatenate([np.arange(ps.n) if rows is None else rows, context.rows])
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
-                      self.bounds_m, fields, prev_time_s=prev)
+                      self.bounds_m, chunk_fields(ps, rows, request.fields), prev_time_s=prev)
+        if context is not None:
+            chunk.context_ids = ps.pid[context.rows].astype(np.int64)
+            chunk.evict_ids, chunk.context_reset = context.evict, context.reset
         item = OutboxItem(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)
         dropped = self._outbox.put(item)
         with self._lock:
             self.stats.dropped_outbox += dropped
             self.stats.prepare_s += time.perf_counter() - t0
+        if dropped:
+            self._context_stale = True
         return True
+
+    def _split_context(self, ps: ParticleState, request: DataRequest,
+                       inside: np.ndarray | None) -> ContextSplit | None:
+        """The context rows and evictions of this chunk (None: context is off)."""
+        if self._context is None:
+            return None
+        if self._context_stale:
+            self._context_stale = False
+            self._context.reset()
+        outside = np.zeros(ps.n, dtype=bool) if inside is None else ~inside
+        if request.decimate > 1:
+            outside &= ps.pid % request.decimate == 0
+        split = self._context.split(ps.pid, ps.x, outside)
+        with self._lock:
+            self.stats.context_rows += len(split.rows)
+            self.stats.context_evicted += len(split.evict)
+            self.stats.context_resets += split.reset
+        return split
 
     def _publish_stats(self, step: int, time_s: float, ps: ParticleState) -> None:
         """Compute, encode and queue this rank's Stats (the spec's open regions at time_s;
@@ -428,6 +477,8 @@ class RankPublisher:
                         else:
                             name = f"dropped_{outcome}" if outcome != "failed" else "failed"
                             setattr(self.stats, name, getattr(self.stats, name) + 1)
+                            if outcome != "no_server":  # the server missed cache updates
+                                self._context_stale = True
                     elif item.kind == STATS:
                         if outcome == "sent":
                             self._puts += _Tally(stats=1)

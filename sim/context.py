@@ -1,0 +1,87 @@
+"""Which particles outside the regions of interest a rank sends, so the render server can
+draw complete pictures while the chunks carry only the regions (render_server.particles).
+
+The server keeps the last state it received of every particle by id. A rank therefore
+sends a particle outside the step's regions (a *context row*) only when the server's copy
+is missing or stale: at the first due step, after a reset (a spec change, a dropped chunk),
+and when the particle moved more than `tolerance_m` from where it was last sent. Particles
+inside the regions travel in every due chunk as before; when one of them is still cached
+(it entered a region), or a cached one left the rank (migration), its id is *evicted* so
+the server never draws a particle twice.
+
+State: dense arrays indexed by particle id (grown on demand): the position last sent
+(NaN: not in the server's cache), 12 bytes per id.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_TOLERANCE_FRACTION = 0.05  # of the particle spacing: resend a context row beyond it
+
+
+@dataclass
+class ContextSplit:
+    """What one due chunk carries besides its fresh rows."""
+
+    rows: np.ndarray  # [k] intp: rows of the rank's particle arrays to send as context
+    evict: np.ndarray  # [e] int64: ids the server's cache must drop
+    reset: bool  # the server drops every row this rank cached before applying the rest
+
+
+class ContextTracker:
+    """One rank's view of what the render server has cached from it."""
+
+    def __init__(self, tolerance_m: float):
+        if not (np.isfinite(tolerance_m) and tolerance_m >= 0.0):
+            raise ValueError(f"context tolerance must be a finite length >= 0 m, got "
+                             f"{tolerance_m}")
+        self.tolerance_m = tolerance_m
+        self._sent = np.full((0, 3), np.nan, dtype=np.float32)  # [ids, 3] m, NaN: not cached
+        self._reset = True
+        self.context_rows = 0  # rows sent as context so far
+        self.evicted = 0
+        self.resets = 0
+
+    def reset(self) -> None:
+        """Forget what the server holds: the next split resends every outside particle."""
+        self._reset = True
+
+    def split(self, pid: np.ndarray, x: np.ndarray, outside: np.ndarray) -> ContextSplit:
+        """pid [n] int ids and x [n, 3] m of the rank's particles; outside [n] bool: the
+        particles the server must draw from its cache at this step (outside every region of
+        the request, and within its decimation stride). Returns the context rows, the
+        evictions and the reset flag, and records them as sent."""
+        reset, self._reset = self._reset, False
+        if reset:
+            self._sent[:] = np.nan
+            self.resets += 1
+        top = int(pid.max()) + 1 if len(pid) else 0
+        if top > len(self._sent):
+            grown = np.full((max(top, 2 * len(self._sent)), 3), np.nan, dtype=np.float32)
+            grown[:len(self._sent)] = self._sent
+            self._sent = grown
+        cached = ~np.isnan(self._sent[:, 0])  # [ids]
+        here = np.zeros(len(self._sent), dtype=bool)
+        here[pid] = True
+        # cached ids that are no longer outside here: entered a region, or left the rank
+        inside_ids = pid[~outside]
+        gone = cached & ~here
+        gone[inside_ids] |= cached[inside_ids]
+        evict = np.flatnonzero(gone).astype(np.int64)
+        self._sent[evict] = np.nan
+        rows = np.flatnonzero(outside)
+        last = self._sent[pid[rows]]  # [m, 3], NaN where not cached
+        moved = np.isnan(last[:, 0])
+        if self.tolerance_m > 0.0:
+            d2 = np.einsum("ij,ij->i", x[rows] - last, x[rows] - last)
+            moved |= d2 > self.tolerance_m ** 2
+        else:
+            moved |= np.any(x[rows] != last, axis=1)
+        rows = rows[moved]
+        self._sent[pid[rows]] = x[rows]
+        self.context_rows += len(rows)
+        self.evicted += len(evict)
+        return ContextSplit(rows, evict, reset)

@@ -46,6 +46,7 @@ FONT_PX = (8, 40)  # smallest and largest font size, px
 GRID_LINES = 10  # about this many grid lines across the domain's longest side
 # coverage of the context lines drawn on the background (ink: black on a light background)
 GRID_ALPHA, EDGE_ALPHA, BBOX_ALPHA = 0.16, 0.32, 0.55
+LINE_PX_HEIGHT = 768  # lines are 1 px wide up to this image height, 2 px to twice it, ...
 SUPERSAMPLE = 2  # context lines are drawn at this scale and averaged down (antialiasing)
 SUPERSAMPLE_MAX_PIXELS = 1 << 22  # larger images are drawn at scale 1
 NEAR_FRACTION = 1e-3  # perspective: lines are clipped this far in front of the camera,
@@ -189,9 +190,11 @@ def context_segments(view: View, bounds: Bounds) -> list[tuple[np.ndarray, float
             grids += g
         out += [(np.array(grids).reshape(-1, 2, 3), GRID_ALPHA),
                 (np.array(edges).reshape(-1, 2, 3), EDGE_ALPHA)]
-    if notes.bbox:
-        box = [e for axis in range(3) for level in (lo[axis], hi[axis])
-               for e in _face(axis, level, lo, hi, 1.0, False)[0]]
+    if notes.bbox:  # the outlines of the bottom and top faces, and the 4 edges between
+        box = _face(2, lo[2], lo, hi, 1.0, False)[0] + _face(2, hi[2], lo, hi, 1.0, False)[0]
+        box += [np.array([e[0], e[0]]) for e in box[:4]]
+        for e in box[8:]:
+            e[1, 2] = hi[2]
         out.append((np.array(box), BBOX_ALPHA))
     return out
 
@@ -244,13 +247,14 @@ def compose_context(view: View, bounds: Bounds) -> Layer:
         return Layer.empty()
     w, h = view.width, view.height
     scale = SUPERSAMPLE if w * h * SUPERSAMPLE ** 2 <= SUPERSAMPLE_MAX_PIXELS * 4 else 1
+    thick = max(1, round(h / LINE_PX_HEIGHT))  # line width, px
     mask = Image.new("L", (w * scale, h * scale), 0)
     draw = ImageDraw.Draw(mask)
     for segments, alpha in lines:  # later (stronger) lines overwrite earlier ones
         for (x0, y0), (x1, y1) in project_segments(segments, view):
             # Pillow's integer coordinates are pixel centres, ours pixel corners
             draw.line([(x0 * scale - 0.5, y0 * scale - 0.5), (x1 * scale - 0.5, y1 * scale - 0.5)],
-                      fill=round(alpha * 255), width=scale)
+                      fill=round(alpha * 255), width=thick * scale)
     if scale > 1:
         mask = mask.reduce(scale)
     cover = np.asarray(mask).reshape(-1)
@@ -287,10 +291,12 @@ def compose_legend(view: View) -> Layer:
     box_h = ascent + descent + size + bar_h + (ascent + descent) // 2 + 2
     if box_w + 2 * margin > w or box_h + 2 * margin > h:
         return Layer.empty()  # it does not fit
-    x_right, y_top = w - margin, margin
+    # drawn on the legend's corner of the image only: columns from ox on, rows above oh
+    ox, oh = max(0, w - margin - box_w - margin), min(h, box_h + 2 * margin)
+    x_right, y_top = w - margin - ox, margin
     bar_x0, bar_y0 = x_right - bar_w, y_top + ascent + descent + size
     # RGBA on transparent: Pillow leaves straight (not premultiplied) colour and coverage
-    canvas = Image.new("RGBA", (w, h), (0, 0, 0, 0))
+    canvas = Image.new("RGBA", (w - ox, oh), (0, 0, 0, 0))
     draw = ImageDraw.Draw(canvas)
     bg, line, text_ink = _inks(view)
     ink = tuple(int(c) for c in text_ink) + (255,)
@@ -303,7 +309,7 @@ def compose_legend(view: View) -> Layer:
         draw.line([(bar_x0 - tick, y), (bar_x0 - 1, y)], fill=ink, width=1)
         draw.text((bar_x0 - tick - size // 4, y), text, font=f, fill=ink, anchor="rm",
                   stroke_width=stroke, stroke_fill=halo)
-    rgba = np.array(canvas)  # [h, w, 4] uint8
+    rgba = np.array(canvas)  # [oh, w - ox, 4] uint8
     # the bar: row r (0 at the top) shows the value at (r + 0.5) / bar_h from the high end,
     # looked up in the colormap as the renderer's shading does
     lut = view_colormap(view.colormap).lut()
@@ -320,10 +326,10 @@ def compose_legend(view: View) -> Layer:
                (slice(bar_y0, bar_y0 + bar_h), slice(bar_x0 + bar_w, bar_x0 + bar_w + 1))):
         rgba[sl[0], sl[1], :3] = edge
         rgba[sl[0], sl[1], 3] = 255
-    flat = rgba.reshape(-1, 4)
-    index = np.flatnonzero(flat[:, 3]).astype(np.int64)
-    alpha = flat[index, 3].astype(np.float32) / 255.0
-    return Layer(index, flat[index, :3].astype(np.float32) * alpha[:, None], alpha)
+    rows, cols = np.nonzero(rgba[:, :, 3])
+    alpha = rgba[rows, cols, 3].astype(np.float32) / 255.0
+    return Layer(rows.astype(np.int64) * w + cols + ox,
+                 rgba[rows, cols, :3].astype(np.float32) * alpha[:, None], alpha)
 
 
 # --- time text: glyphs rendered once, a string laid out per frame ------------------------

@@ -156,7 +156,11 @@ def test_context_lines_lie_on_the_floor_and_the_channel_walls():
     assert len(lines[1][0]) == 12  # the three faces' outlines
     boxed = make_spec(view(annotations={"bbox": True, "context": False})).views[0]
     ((box, alpha),) = overlay.context_segments(boxed, DOMAIN)
-    assert alpha == overlay.BBOX_ALPHA and len(box) == 24  # each of 6 faces' 4 edges
+    assert alpha == overlay.BBOX_ALPHA and len(box) == 12
+    ends = {tuple(sorted(map(tuple, e.tolist()))) for e in box}
+    assert len(ends) == 12  # the box's 12 edges, each once, between its 8 corners
+    assert {c for e in ends for c in e} == {(x, y, z) for x in (lo[0], hi[0])
+                                            for y in (lo[1], hi[1]) for z in (lo[2], hi[2])}
 
 
 def test_bbox_is_off_by_default_and_draws_when_asked():

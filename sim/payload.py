@@ -84,6 +84,20 @@ def cull_rows(ps: ParticleState, request: DataRequest, radius_m: float = 0.0,
     return idx
 
 
+def scene_visible(ps: ParticleState, request: DataRequest, radius_m: float) -> np.ndarray | None:
+    """[n] bool: the particles that may show in one of the request's culled views when every
+    particle is drawn (the server completes the step from its cache), each view among its
+    own stride; None when the request culls for no view (or no radius is given)."""
+    if not request.visible_in or radius_m <= 0.0:
+        return None
+    seen = np.zeros(ps.n, dtype=bool)
+    for view, _ in request.visible_in:
+        sub = np.arange(ps.n) if view.decimate <= 1 else np.flatnonzero(
+            ps.pid % view.decimate == 0)
+        seen[sub[visible_mask(ps.x[sub], view, radius_m)]] = True
+    return seen
+
+
 def chunk_fields(ps: ParticleState, rows: np.ndarray | None,
                  names: tuple[str, ...] | list[str]) -> dict[str, np.ndarray]:
     """`positions` [m, 3] float32 (m) and the known fields of `names` (float32; int64 for

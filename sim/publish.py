@@ -103,7 +103,7 @@ from minority.sim.outbox import (
     Outbox,
     OutboxItem,
 )
-from minority.sim.payload import SIM_FIELDS, chunk_fields, cull_rows, flow_stats
+from minority.sim.payload import SIM_FIELDS, chunk_fields, cull_rows, flow_stats, scene_visible
 from minority.sim.state import ParticleState
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
@@ -397,10 +397,22 @@ class RankPublisher:
                 print(f"rank {self.rank}: the spec asks for field {name!r}, which the simulation "
                       f"does not provide (known: {', '.join(SIM_FIELDS)})", file=self.log)
         inside = None if request.regions is None else inside_mask(ps.x, request.regions)
-        rows = cull_rows(ps, request, render_radius_m(self.spec, self.spacing_m), inside)
-        context = self._split_context(ps, request, inside)
-        if context is not None and len(context.rows):
-            rows = np.concatenate([np.arange(ps.n) if rows is None else rows, context.rows])
+        radius = render_radius_m(self.spec, self.spacing_m)
+        context = None
+        if self._context is None:
+            rows = cull_rows(ps, request, radius, inside)
+        else:  # every view draws the whole scene: cull by it, fresh rows and context alike
+            keep = np.ones(ps.n, dtype=bool) if request.decimate <= 1 else (
+                ps.pid % request.decimate == 0)
+            seen = scene_visible(ps, request, radius)
+            if seen is not None:
+                keep &= seen
+            if inside is None:  # no regions: every particle is fresh, none cached
+                fresh, outside = keep, np.zeros(ps.n, dtype=bool)
+            else:
+                fresh, outside = keep & inside, keep & ~inside
+            context = self._split_context(ps, outside)
+            rows = np.concatenate([np.flatnonzero(fresh), context.rows])
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, self.spacing_m,
                       self.bounds_m, chunk_fields(ps, rows, request.fields), prev_time_s=prev)
         if context is not None:
@@ -415,17 +427,13 @@ class RankPublisher:
             self._context_stale = True
         return True
 
-    def _split_context(self, ps: ParticleState, request: DataRequest,
-                       inside: np.ndarray | None) -> ContextSplit | None:
-        """The context rows and evictions of this chunk (None: context is off)."""
-        if self._context is None:
-            return None
+    def _split_context(self, ps: ParticleState, outside: np.ndarray) -> ContextSplit:
+        """The context rows and evictions of this chunk. outside [n] bool: the particles
+        outside the regions the server must draw (within the stride, and that may show);
+        the cached ones not among them are evicted."""
         if self._context_stale:
             self._context_stale = False
             self._context.reset()
-        outside = np.zeros(ps.n, dtype=bool) if inside is None else ~inside
-        if request.decimate > 1:
-            outside &= ps.pid % request.decimate == 0
         split = self._context.split(ps.pid, ps.x, outside)
         with self._lock:
             self.stats.context_rows += len(split.rows)

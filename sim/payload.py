@@ -13,33 +13,16 @@ statistics of a Stats message.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
+from minority.protocol.fields import FIELDS, FieldInfo
 from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats
 from minority.protocol.spec import DataRequest, Region, inside_mask
 from minority.sim.state import ParticleState
 from minority.sim.visibility import visible_mask
 
-
-@dataclass(frozen=True)
-class SimField:
-    """A particle field the simulation can send: [n] or [n, components], its wire dtype."""
-
-    components: int  # 1: [n]
-    dtype: str
-    unit: str
-    description: str
-
-
-SIM_FIELDS: dict[str, SimField] = {
-    "displacement": SimField(3, "<f4", "m", "x - x0, from the initial position"),
-    "displacement_magnitude": SimField(1, "<f4", "m", "|x - x0|"),
-    "velocity": SimField(3, "<f4", "m/s", "particle velocity"),
-    "velocity_magnitude": SimField(1, "<f4", "m/s", "|v|"),
-    "pressure": SimField(1, "<f4", "Pa", "-tr(tau) / 3, Kirchhoff mean stress (compression > 0)"),
-    "id": SimField(1, "<i8", "1", "original particle id (row of the HDF5 output)"),
-}
+# what the simulation can send: every field of the protocol's table (units, shapes)
+SIM_FIELDS: dict[str, FieldInfo] = dict(FIELDS)
 POSITION_BYTES = 12  # positions [n, 3] float32
 
 

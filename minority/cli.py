@@ -87,7 +87,7 @@ def _serve_parser(sub) -> None:
                         "(for batch jobs and the demo; without it: serve until stopped)")
     p.add_argument("--http", metavar="[HOST:]PORT",
                    help="also serve a live view to a browser at http://HOST:PORT/ (HOST "
-                        "default 127.0.0.1, PORT 0: a free one; the URL is printed): the "
+                        "left out: 127.0.0.1; PORT 0: a free one; the URL is printed): the "
                         "newest frame of every view as it is rendered, the ranks' stats "
                         "against the spec's predicted events, per-step receive/setup/render "
                         "times, and an index of DIR's runs (frames, movies, reports, scores, "
@@ -141,6 +141,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             live.close()
         return FAILED
     servers = []
+    stop = _stop_on_signals()  # before the "serving" lines: a stop from then on is clean
     try:
         args.out.mkdir(parents=True, exist_ok=True)
         for spec in specs:
@@ -162,7 +163,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         if live is not None:
             live.close()
         return FAILED
-    stop = _stop_on_signals()
     try:
         while not stop.wait(0.2):
             if args.exit_when_done and all(s.finished.is_set() for s in servers):

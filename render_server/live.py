@@ -462,6 +462,8 @@ class _Handler(BaseHTTPRequestHandler):
             reported = 0
             while not client.closed:
                 data = client.get(KEEPALIVE_S)
+                if client.closed:
+                    break
                 if client.dropped != reported:  # tell the page it missed some
                     reported = client.dropped
                     self.wfile.write(sse("dropped", {"dropped": reported}))

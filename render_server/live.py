@@ -29,6 +29,7 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -105,6 +106,15 @@ class ClientQueue:
             self._items.append(data)
             self._cond.notify()
 
+    def put_front(self, data: bytes) -> None:
+        """Queue `data` before everything queued (a full queue drops its oldest other)."""
+        with self._cond:
+            if len(self._items) >= self.capacity:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.appendleft(data)
+            self._cond.notify()
+
     def get(self, timeout: float) -> bytes | None:
         """The next message, or None after `timeout` s or once closed."""
         with self._cond:
@@ -177,6 +187,52 @@ def _put_bounded(rows: collections.OrderedDict, step: int, make):
         if len(rows) > MAX_STEPS:
             rows.popitem(last=False)
     return row
+
+
+class _Series(NamedTuple):
+    """A run's rows, copied: Stats per step (summed over ranks) and Timing per step."""
+
+    steps: list[int]
+    time_s: np.ndarray  # [k] s
+    count: np.ndarray  # [k] particles
+    speed_sq: np.ndarray  # [k] sum |v|^2, m^2/s^2
+    max_disp: np.ndarray  # [k] m
+    ranks: list[int]  # [k] ranks that sent the step's stats
+    hist: np.ndarray  # [k, SPEED_BINS] speed histogram
+    timing_steps: list[int]
+    timing: np.ndarray  # [j, 4] time_s, receive_s, setup_s, render_s
+
+
+def _series(state: _RunState) -> _Series:
+    steps = sorted(state.stats)
+    rows = [state.stats[s] for s in steps]
+    cols = np.array([(r.time_s, r.count, r.speed_sq, r.max_disp) for r in rows],
+                    np.float64).reshape(-1, 4)
+    tsteps = sorted(state.timing)
+    return _Series(steps, cols[:, 0], cols[:, 1], cols[:, 2], cols[:, 3],
+                   [len(r.ranks) for r in rows],
+                   np.array([r.hist for r in rows], np.int64).reshape(-1, SPEED_BINS), tsteps,
+                   np.array([state.timing[s][:4] for s in tsteps], np.float64).reshape(-1, 4))
+
+
+def _timeline(name: str, s: _Series) -> dict:
+    """Stats summed over ranks per step: time (s), particles, kinetic energy per unit
+    particle mass 1/2 sum |v|^2 (J/kg), moving share, max displacement (m); timing per step:
+    receive, setup and render (s, setup and render summed over the views)."""
+    scale = quantile_speed(s.hist) if s.steps else np.zeros(0)
+    threshold = MOVING_SPEED_FRACTION * float(scale.max()) if s.steps else 0.0
+    moving = (s.hist[:, np.r_[0.0, EDGES] >= threshold].sum(axis=1) if threshold > 0
+              else np.zeros(len(s.steps)))
+    return {"run": name,
+            "stats": {"step": s.steps, "time_s": _rounded(s.time_s),
+                      "particles": [int(c) for c in s.count], "ranks": s.ranks,
+                      "kinetic_j_per_kg": _rounded(0.5 * s.speed_sq),
+                      "moving_share": _rounded(moving / np.maximum(s.count, 1)),
+                      "max_displacement_m": _rounded(s.max_disp),
+                      "moving_speed_m_s": threshold},
+            "timing": {"step": s.timing_steps, "time_s": _rounded(s.timing[:, 0]),
+                       "receive_s": _rounded(s.timing[:, 1]), "setup_s": _rounded(s.timing[:, 2]),
+                       "render_s": _rounded(s.timing[:, 3])}}
 
 
 class LiveView:
@@ -257,7 +313,7 @@ class LiveView:
                 state.views = [{"name": v.name, "width": v.width, "height": v.height,
                                 "field": v.field} for v in message.views]
                 state.predicted = [e.to_dict() for e in message.events]
-                self._broadcast("run", self._run_json(state, timeline=False))
+                self._broadcast("run", self._run_json(state))
 
     def _state(self, name: str) -> _RunState:
         state = self._runs.get(name)
@@ -288,59 +344,43 @@ class LiveView:
             if self._closing.is_set():
                 return
             for name in sorted(dirty):
-                with self._lock:
-                    if name in self._runs:
-                        self._broadcast("timeline", self._timeline(self._runs[name]))
+                timeline = self.timeline(name)
+                if timeline is not None:
+                    message = sse("timeline", timeline)
+                    with self._lock:
+                        for client in self._clients:
+                            client.put(message)
             self._closing.wait(self.push_interval_s)  # at most one push per interval
 
     def timeline(self, name: str) -> dict | None:
         """The run's series as the page draws them (None for an unknown run)."""
-        with self._lock:
+        with self._lock:  # only copied under the lock: the observer waits for no arithmetic
             state = self._runs.get(name)
-            return None if state is None else self._timeline(state)
-
-    def _timeline(self, state: _RunState) -> dict:
-        """Stats summed over ranks per step: time (s), particles, kinetic energy per unit
-        particle mass 1/2 sum |v|^2 (J/kg), moving share, max displacement (m); timing per
-        step: receive, setup and render (s, setup and render summed over the views)."""
-        steps = sorted(state.stats)
-        rows = [state.stats[s] for s in steps]
-        hist = np.array([r.hist for r in rows], np.int64).reshape(-1, SPEED_BINS)
-        count = np.array([r.count for r in rows], np.float64)
-        scale = quantile_speed(hist) if len(rows) else np.zeros(0)
-        threshold = MOVING_SPEED_FRACTION * float(scale.max()) if len(rows) else 0.0
-        moving = hist[:, np.r_[0.0, EDGES] >= threshold].sum(axis=1) if threshold > 0 else 0 * count
-        tsteps = sorted(state.timing)
-        timing = np.array([state.timing[s][:4] for s in tsteps], np.float64).reshape(-1, 4)
-        return {"run": state.name,
-                "stats": {"step": steps, "time_s": _rounded([r.time_s for r in rows]),
-                          "particles": [r.count for r in rows],
-                          "ranks": [len(r.ranks) for r in rows],
-                          "kinetic_j_per_kg": _rounded([0.5 * r.speed_sq for r in rows]),
-                          "moving_share": _rounded(moving / np.maximum(count, 1)),
-                          "max_displacement_m": _rounded([r.max_disp for r in rows]),
-                          "moving_speed_m_s": threshold},
-                "timing": {"step": tsteps, "time_s": _rounded(timing[:, 0]),
-                           "receive_s": _rounded(timing[:, 1]), "setup_s": _rounded(timing[:, 2]),
-                           "render_s": _rounded(timing[:, 3])}}
-
-    def _run_json(self, state: _RunState, timeline: bool = True) -> dict:
-        d = {"name": state.name, "run": state.run, "seq": state.seq, "views": state.views,
-             "predicted": state.predicted, "events": list(state.events),
-             "frames": {v: _frame_json(state.name, f) for v, f in state.frames.items()}}
-        if timeline:
-            d["timeline"] = self._timeline(state)
-        return d
+            series = None if state is None else _series(state)
+        return None if series is None else _timeline(name, series)
 
     def state(self) -> dict:
         """Every run the server has seen (oldest first), with its newest frames and series."""
         with self._lock:
-            return self._state_json()
+            runs = self._snapshot()
+        return self._state_json(runs)
 
-    def _state_json(self) -> dict:
-        return {"runs": [self._run_json(s) for s in sorted(self._runs.values(),
-                                                           key=lambda s: s.seq)],
-                "moving_speed_fraction": MOVING_SPEED_FRACTION, "out": str(self.out_dir)}
+    def _snapshot(self) -> list[dict]:
+        """Each run's state, its series copied, not computed (under the lock)."""
+        return [{**self._run_json(s), "series": _series(s)}
+                for s in sorted(self._runs.values(), key=lambda s: s.seq)]
+
+    def _state_json(self, runs: list[dict]) -> dict:
+        for r in runs:
+            r["timeline"] = _timeline(r["name"], r.pop("series"))
+        return {"runs": runs, "moving_speed_fraction": MOVING_SPEED_FRACTION,
+                "out": str(self.out_dir)}
+
+    @staticmethod
+    def _run_json(state: _RunState) -> dict:
+        return {"name": state.name, "run": state.run, "seq": state.seq, "views": state.views,
+                "predicted": state.predicted, "events": list(state.events),
+                "frames": {v: _frame_json(state.name, f) for v, f in state.frames.items()}}
 
     def newest_png(self, run: str, view: str) -> bytes | None:
         with self._lock:
@@ -355,9 +395,10 @@ class LiveView:
             if len(self._clients) >= MAX_CLIENTS or self._closing.is_set():
                 return None
             client = ClientQueue(self.client_capacity, connection)
-            client.put(sse("state", self._state_json()))
             self._clients.append(client)
-            return client
+            runs = self._snapshot()
+        client.put_front(sse("state", self._state_json(runs)))  # before what came since
+        return client
 
     def unsubscribe(self, client: ClientQueue) -> None:
         with self._lock:

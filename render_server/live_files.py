@@ -2,9 +2,9 @@
 (frames, movies, reports, scores, logs) and the files themselves, never a path outside it.
 
 A run directory is `{out}/{run}/` holding view directories of PNG frames (`{view}/*.png`,
-written by the daemon), movies `{view}.mp4` (`minority replay --movie`, the demo), and
-`report.md` / `score.md` when present; beside it lie `{out}/{run}.mcap` and the report's plots
-`{out}/{run}.timing.png`, `{out}/{run}.bytes.png`.
+written by the daemon), movies `{view}.mp4` and animated previews `{view}.webp` (`minority
+replay --movie`, the demo), and `report.md` / `score.md` when present; beside it lie
+`{out}/{run}.mcap` and the report's plots `{out}/{run}.timing.png`, `{out}/{run}.bytes.png`.
 """
 
 from __future__ import annotations
@@ -19,11 +19,12 @@ MAX_RUNS_LISTED = 500  # run directories in the index, newest first
 MAX_DIR_ENTRIES = 10000  # entries of one directory listing
 # what a file is served as; anything else downloads. HTML and SVG from --out are shown as
 # text, never run as pages of this origin
-CONTENT_TYPES = {".png": "image/png", ".mp4": "video/mp4", ".md": "text/plain; charset=utf-8",
-                 ".json": "application/json", ".txt": "text/plain; charset=utf-8",
+CONTENT_TYPES = {".png": "image/png", ".mp4": "video/mp4", ".webp": "image/webp",
+                 ".md": "text/plain; charset=utf-8", ".json": "application/json",
+                 ".txt": "text/plain; charset=utf-8",
                  ".csv": "text/plain; charset=utf-8", ".html": "text/plain; charset=utf-8",
                  ".svg": "text/plain; charset=utf-8", ".mcap": "application/octet-stream"}
-RUN_FILES = (".mp4", ".md", ".json", ".png")  # shown in a run directory's row
+RUN_FILES = (".mp4", ".webp", ".md", ".json", ".png")  # shown in a run directory's row
 BESIDE = (".mcap", ".timing.png", ".bytes.png")  # {out}/{run}{suffix}
 RANGE_RE = re.compile(r"bytes=(\d*)-(\d*)")
 

@@ -227,9 +227,9 @@ def _sim_parser(sub) -> None:
                    help="send only the particles in the spec's regions: the server draws "
                         "nothing outside them (default: the particles outside are sent once, "
                         "and again when they move, for the server to draw from its cache)")
-    p.add_argument("--context-tolerance", type=float, metavar="M",
+    p.add_argument("--context-tolerance", type=float, default=0.0, metavar="M",
                    help="resend a particle outside the regions once it moved this far, m "
-                        "(default: 5 %% of the particle spacing)")
+                        "(0: at any motion, frames equal full frames)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     _add_network(p)
     p.set_defaults(func=_cmd_sim, kernels=True)

@@ -4,7 +4,9 @@ draw complete pictures while the chunks carry only the regions (render_server.pa
 The server keeps the last state it received of every particle by id. A rank therefore
 sends a particle outside the step's regions (a *context row*) only when the server's copy
 is missing or stale: at the first due step, after a reset (a spec change, a dropped chunk),
-and when the particle moved more than `tolerance_m` from where it was last sent. Particles
+and when the particle moved more than `tolerance_m` from where it was last sent (default 0:
+any change of its position; fields that change at rest, such as pressure, show as of the
+particle's last move). Particles
 inside the regions travel in every due chunk as before; when one of them is still cached
 (it entered a region), or a cached one left the rank (migration), its id is *evicted* so
 the server never draws a particle twice.
@@ -19,8 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEFAULT_TOLERANCE_FRACTION = 0.05  # of the particle spacing: resend a context row beyond it
-
+DEFAULT_TOLERANCE_M = 0.0  # resend a context row whose position changed at all
 
 @dataclass
 class ContextSplit:

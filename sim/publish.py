@@ -92,7 +92,7 @@ from minority.protocol.messages import (
 from minority.protocol.session import NetworkOptions, QoS, Role, open_session, put
 from minority.protocol.spec import DataRequest, Spec, inside_mask, render_radius_m
 from minority.protocol.view import Window
-from minority.sim.context import DEFAULT_TOLERANCE_FRACTION, ContextSplit, ContextTracker
+from minority.sim.context import DEFAULT_TOLERANCE_M, ContextSplit, ContextTracker
 from minority.sim.outbox import (
     CHUNK,
     CONTROL,
@@ -141,17 +141,16 @@ class PublishOptions:
     outbox_stats: int = OUTBOX_STATS
     stats_every_s: float = STATS_EVERY_S  # s of simulated time between Stats; 0: none
     # send the particles outside the regions as context rows the server caches (complete
-    # pictures; sim.context), again when one moved more than the tolerance (m; None:
-    # DEFAULT_TOLERANCE_FRACTION of the particle spacing)
+    # pictures; sim.context), again when one moved more than the tolerance, m
     context: bool = True
-    context_tolerance_m: float | None = None
+    context_tolerance_m: float = DEFAULT_TOLERANCE_M
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.stats_every_s) and self.stats_every_s >= 0.0):
             raise ValueError(f"stats_every_s must be a finite number of seconds >= 0 (0: no "
                              f"stats), got {self.stats_every_s}")
         tol = self.context_tolerance_m
-        if tol is not None and not (math.isfinite(tol) and tol >= 0.0):
+        if not (math.isfinite(tol) and tol >= 0.0):
             raise ValueError(f"the context tolerance must be a finite length >= 0 m, got {tol}")
 
 
@@ -248,9 +247,7 @@ class RankPublisher:
         self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
         self._stats_cadence = (Window(every_s=options.stats_every_s)
                                if options.stats_every_s > 0 else None)
-        tolerance = options.context_tolerance_m
-        self._context = (ContextTracker(DEFAULT_TOLERANCE_FRACTION * spacing_m
-                                        if tolerance is None else tolerance)
+        self._context = (ContextTracker(options.context_tolerance_m)
                          if options.context else None)
         self._context_stale = False  # set by a spec change or a dropped chunk: reset it
         self._prev: tuple[int, float] | None = None  # (step, time_s) of the last publish call

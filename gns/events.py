@@ -10,11 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from minority.protocol.flow import MOVING_SPEED_FRACTION, SPEED_QUANTILE  # noqa: F401 - re-exported
 
-MOVING_SPEED_FRACTION = 0.05  # a particle moves when faster than this fraction of the peak speed
 ONSET_FRACTION = 0.05  # failure onset: the speed scale first exceeds this fraction of its peak
 REST_FRACTION = 0.01  # end of runout: kinetic energy back below this fraction of its peak
-SPEED_QUANTILE = 0.95  # the speed scale of a frame
 FAST_FRACTION = 0.5  # the main runout phase: the speed scale above this fraction of its peak
 
 

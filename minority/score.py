@@ -17,39 +17,20 @@ from pathlib import Path
 
 import numpy as np
 
-from minority.gns.events import MOVING_SPEED_FRACTION, SPEED_QUANTILE, events_from_series, fast_windows
+from minority.gns.events import events_from_series, fast_windows
+from minority.protocol.flow import (
+    MOVING_SPEED_FRACTION,
+    SPEED_QUANTILE,
+    histogram_quantile,
+    moving_count,
+)
 from minority.protocol.logread import LogNote
-from minority.protocol.messages import SPEED_EDGES_M_S
 from minority.protocol.runlog import FlowRecord, read_flow
 from minority.protocol.spec import Spec
 from minority.report import Notice, notice_on_stderr, say_notes
 
 EVENT_TOLERANCE = 0.10  # targets: event times and displacement range within 10%
-EDGES = np.asarray(SPEED_EDGES_M_S)
 
-
-
-def quantile_from_histogram(hist: np.ndarray, q: float) -> np.ndarray:
-    """Per row of hist [k, bins] the q-quantile speed (m/s), log-interpolated within a bin."""
-    lo = np.r_[EDGES[0] * 0.1, EDGES]  # bin i spans [lo[i], hi[i])
-    hi = np.r_[EDGES, EDGES[-1] * 10]
-    cum = np.cumsum(hist, axis=1)
-    out = np.zeros(len(hist))
-    for r in range(len(hist)):
-        total = cum[r, -1]
-        if total == 0:
-            continue
-        i = int(np.searchsorted(cum[r], q * total))
-        below = cum[r, i - 1] if i else 0
-        frac = (q * total - below) / max(hist[r, i], 1)
-        out[r] = lo[i] * (hi[i] / lo[i]) ** frac if i else 0.0  # the lowest bin reads as rest
-    return out
-
-
-def moving_count(hist: np.ndarray, threshold_m_s: float) -> np.ndarray:
-    """Particles per row faster than the threshold: bins whose lower edge is at or above it."""
-    lower = np.r_[0.0, EDGES]
-    return hist[:, lower >= threshold_m_s].sum(axis=1)
 
 
 def load_run(path: str | Path, run: str | None = None,
@@ -71,7 +52,7 @@ def _inside(times, windows) -> int:
 
 def score(spec: Spec, run: FlowRecord) -> dict:
     """Predicted vs actual, and the oracle's schedule vs a fixed cadence of equal budget."""
-    scale = quantile_from_histogram(run.hist, SPEED_QUANTILE)
+    scale = histogram_quantile(run.hist, SPEED_QUANTILE)
     actual = events_from_series(run.time_s, scale, run.kinetic_m2_s2)
     critical = fast_windows(run.time_s, scale)
     actual_times = {"failure_onset": actual.onset_s, "peak_motion": actual.peak_s,

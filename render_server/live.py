@@ -33,7 +33,8 @@ from typing import NamedTuple
 from urllib.parse import urlsplit
 
 import numpy as np
-from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Event, Frame, Stats, Timing
+from minority.protocol.flow import MOVING_SPEED_FRACTION, histogram_quantile, moving_count
+from minority.protocol.messages import SPEED_BINS, Event, Frame, Stats, Timing
 from minority.protocol.spec import Spec
 from minority.render_server import live_files
 
@@ -45,9 +46,6 @@ MAX_CLIENTS = 32  # browsers streaming at once (more: 503)
 PUSH_INTERVAL_S = 0.5  # a run's timeline is pushed at most this often
 KEEPALIVE_S = 15.0  # an idle stream gets a comment line this often
 SOCKET_TIMEOUT_S = 30.0  # a browser that takes no bytes this long is dropped
-MOVING_SPEED_FRACTION = 0.05  # gns.events.MOVING_SPEED_FRACTION
-SPEED_QUANTILE = 0.95  # gns.events.SPEED_QUANTILE
-EDGES = np.asarray(SPEED_EDGES_M_S)
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1"}
 
 
@@ -67,20 +65,6 @@ def parse_address(text: str) -> tuple[str, int]:
     if not host:
         raise ValueError(f"--http {text!r}: no host before the colon (HOST:PORT or PORT)")
     return host, int(port)
-
-
-def quantile_speed(hist: np.ndarray, q: float = SPEED_QUANTILE) -> np.ndarray:
-    """Per row of hist [k, SPEED_BINS] the q-quantile speed (m/s), log-interpolated in its bin
-    (the lowest bin reads as rest), as minority.score reads it."""
-    lo = np.r_[EDGES[0] * 0.1, EDGES]
-    hi = np.r_[EDGES, EDGES[-1] * 10]
-    cum = np.cumsum(hist, axis=1)
-    target = q * cum[:, -1]
-    i = np.minimum((cum < target[:, None]).sum(axis=1), hist.shape[1] - 1)
-    rows = np.arange(len(hist))
-    below = np.where(i > 0, cum[rows, np.maximum(i - 1, 0)], 0)
-    frac = (target - below) / np.maximum(hist[rows, i], 1)
-    return np.where((i > 0) & (cum[:, -1] > 0), lo[i] * (hi[i] / lo[i]) ** frac, 0.0)
 
 
 class ClientQueue:
@@ -219,10 +203,9 @@ def _timeline(name: str, s: _Series) -> dict:
     """Stats summed over ranks per step: time (s), particles, kinetic energy per unit
     particle mass 1/2 sum |v|^2 (J/kg), moving share, max displacement (m); timing per step:
     receive, setup and render (s, setup and render summed over the views)."""
-    scale = quantile_speed(s.hist) if s.steps else np.zeros(0)
+    scale = histogram_quantile(s.hist) if s.steps else np.zeros(0)
     threshold = MOVING_SPEED_FRACTION * float(scale.max()) if s.steps else 0.0
-    moving = (s.hist[:, np.r_[0.0, EDGES] >= threshold].sum(axis=1) if threshold > 0
-              else np.zeros(len(s.steps)))
+    moving = moving_count(s.hist, threshold) if threshold > 0 else np.zeros(len(s.steps))
     return {"run": name,
             "stats": {"step": s.steps, "time_s": _rounded(s.time_s),
                       "particles": [int(c) for c in s.count], "ranks": s.ranks,

@@ -18,7 +18,7 @@ import pytest
 from conftest import free_port, make_png, make_spec
 from minority.protocol import Event, EventKind, Frame, Spec, Stats, Timing
 from minority.protocol.messages import SPEED_BINS
-from minority.render_server.live import LiveView, parse_address, quantile_speed
+from minority.render_server.live import LiveView, parse_address
 from test_loopback import TIMEOUT_S, wait_until
 from test_render_daemon import EveryStep
 
@@ -130,7 +130,7 @@ def test_the_timeline_sums_the_ranks_per_step_and_marks_what_moves(live):
     """Kinetic energy 1/2 sum |v|^2 and particles summed over ranks, max displacement the
     largest, moving = faster than 5 % of the peak 95 % speed (minority.score's reading of the
     histograms); a rank's stats count once per step; timing summed over the views."""
-    from minority.score import moving_count, quantile_from_histogram
+    from minority.protocol.flow import histogram_quantile, moving_count
 
     spec = Spec.from_dict({**make_spec().to_dict(),
                            "events": [{"name": "peak_motion", "time_s": 0.05,
@@ -148,9 +148,8 @@ def test_the_timeline_sums_the_ranks_per_step_and_marks_what_moves(live):
     assert s["step"] == [10, 20] and s["particles"] == [65, 65]
     assert s["kinetic_j_per_kg"] == [5.0, 17.0] and s["max_displacement_m"] == [0.02, 0.05]
     summed = np.array([np.add(rest, slow), np.add(fast, slow)])
-    threshold = 0.05 * quantile_from_histogram(summed, 0.95).max()
+    threshold = 0.05 * histogram_quantile(summed, 0.95).max()
     assert s["moving_speed_m_s"] == pytest.approx(threshold)
-    assert np.allclose(quantile_speed(summed), quantile_from_histogram(summed, 0.95))
     assert s["moving_share"] == pytest.approx(moving_count(summed, threshold) / 65, rel=1e-5)
     assert 0 < s["moving_share"][0] < s["moving_share"][1] <= 1
     t = tl["timing"]

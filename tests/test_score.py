@@ -5,10 +5,11 @@ import json
 import numpy as np
 import pytest
 from minority.protocol import Chunk, Frame, Spec, Stats
+from minority.protocol.flow import histogram_quantile, moving_count
 from minority.protocol.log import LogWriter
 from minority.protocol.messages import SPEED_BINS, speed_histogram
 
-from minority.score import load_run, markdown, moving_count, quantile_from_histogram, score
+from minority.score import load_run, markdown, score
 
 RUN = "scored"
 N_RANK = 500  # particles per rank, 2 ranks
@@ -71,10 +72,32 @@ def write_log(path, frame_times, chunk_particles=100, other_run=False):
             ns += 1
 
 
+def test_the_histogram_quantile_equals_a_walk_up_the_cumulative_counts():
+    """Against a plain per-row reading: the bin where the cumulative count reaches q of the
+    total, log-interpolated inside it; the lowest bin and an empty row read as rest."""
+    from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S
+
+    edges = np.asarray(SPEED_EDGES_M_S)
+    lo, hi = np.r_[edges[0] * 0.1, edges], np.r_[edges, edges[-1] * 10]
+    rng = np.random.default_rng(3)
+    hist = rng.integers(0, 5, (40, SPEED_BINS)) * (rng.random((40, SPEED_BINS)) < 0.3)
+    hist[0] = 0
+    hist[1, 0] = 7  # all at rest
+    for q in (0.5, 0.95):
+        want = []
+        for row in hist:
+            cum, total = np.cumsum(row), row.sum()
+            i = int(np.searchsorted(cum, q * total)) if total else 0
+            below = cum[i - 1] if i else 0
+            frac = (q * total - below) / max(row[i], 1)
+            want.append(lo[i] * (hi[i] / lo[i]) ** frac if i and total else 0.0)
+        assert np.allclose(histogram_quantile(hist, q), want, rtol=1e-12, atol=0)
+
+
 def test_histogram_quantile_and_moving_count():
     v = np.geomspace(0.01, 1.0, 1001)
     h = np.array([speed_histogram(v)])
-    assert quantile_from_histogram(h, 0.5)[0] == pytest.approx(0.1, rel=0.13)  # a bin is 26%
+    assert histogram_quantile(h, 0.5)[0] == pytest.approx(0.1, rel=0.13)  # a bin is 26%
     assert moving_count(h, 0.1)[0] == pytest.approx(500, abs=60)
     assert h.shape == (1, SPEED_BINS)
 

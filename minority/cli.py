@@ -597,6 +597,9 @@ def _demo_parser(sub) -> None:
                    help="grid cell, m: 0.016 gives 12,960 particles, 0.032 gives 1,800")
     p.add_argument("--frames", type=int, default=d.frames, help="frame budget, all views")
     p.add_argument("--threads", type=int, default=d.threads, help="threads per process")
+    p.add_argument("--http", metavar="[HOST:]PORT",
+                   help="watch the run in a browser: the render server's live view on this "
+                        "address (0: a free port on 127.0.0.1; the URL is printed)")
     p.set_defaults(func=_cmd_demo, kernels=True)
 
 
@@ -606,7 +609,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     try:
         options = DemoOptions(out=args.out, ranks=args.ranks, duration_s=args.duration,
                               cell_size_m=args.cell_size, frames=args.frames,
-                              threads=args.threads)
+                              threads=args.threads, http=args.http)
     except ValueError as exc:
         return fail("demo", exc, BAD_INPUT)
     try:

@@ -42,11 +42,15 @@ class DemoOptions:
     threads: int = 1  # torch and numba threads per process
     checkpoint: Path = CHECKPOINT
     timeout_s: float = 600.0  # the sim's wall-clock limit
+    http: str | None = None  # the server's live view, [HOST:]PORT (port 0: a free one)
 
     def __post_init__(self) -> None:
         from minority.gns.oracle import OracleOptions
+        from minority.render_server.live import parse_address
 
         OracleOptions(frames=self.frames)  # a budget the oracle refuses fails now, not later
+        if self.http is not None:
+            parse_address(self.http)  # raises ValueError naming the problem
 
 
 def demo_column(o: DemoOptions) -> str:
@@ -115,12 +119,23 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
     log_path = o.out / "run.mcap"
     env = {**os.environ, "OMP_NUM_THREADS": str(o.threads),
            "NUMBA_NUM_THREADS": str(o.threads)}
+    live = []
+    if o.http is not None:
+        from minority.render_server.live import parse_address
+
+        host, http_port = parse_address(o.http)
+        http_port = http_port or free_port()
+        live = ["--http", f"[{host}]:{http_port}" if ":" in host else f"{host}:{http_port}"]
     server_log = open(o.out / "server.log", "w")  # noqa: SIM115 - closed below
     server = subprocess.Popen(
         [sys.executable, "-m", "minority", "serve", "--spec", str(spec_path), "--out",
          str(o.out / "frames"), "--record", str(log_path), "--listen", endpoint,
-         "--exit-when-done"], stdout=server_log, stderr=subprocess.STDOUT, env=env)
+         "--exit-when-done", *live], stdout=server_log, stderr=subprocess.STDOUT, env=env)
     say(f"render server: pid {server.pid}, listening on {endpoint} (log {o.out / 'server.log'})")
+    if live:
+        url_host = f"[{host}]" if ":" in host else host
+        say(f"live view: http://{url_host}:{http_port}/ (open it now: the server stops when "
+            "the run is rendered)")
     try:
         sim = subprocess.run(
             [sys.executable, "-m", "minority", "sim", str(scene), "--ranks", str(o.ranks),

@@ -1,9 +1,10 @@
 """`minority oracle preview SPEC ROLLOUT.h5`: the spec's views rendered on the predicted run,
 as one contact sheet PNG (a row per view, columns spread over the frames the view's
 schedule renders), so a person can judge cameras, windows, regions and colors before the
-full run. Rendered by the server's own code (render_server.frames.render_views): regions
-of interest and decimation applied as in the run, annotated as in the run (the domain's
-floor and walls from the rollout's bounds_m).
+full run. Rendered by the server's own code (render_server.frames.render_views) as the run
+draws them: every particle (the server completes the regions from its cache), decimation
+applied, annotated (the domain's floor and walls from the rollout's bounds_m); each label
+says how many particles the view's regions hold then (what the ranks send fresh).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from minority.protocol.spec import ID_FIELD, Spec
+from minority.protocol.spec import ID_FIELD, Spec, inside_mask
 from minority.render_server.frames import render_views
 from minority.render_server.render import Canvas
 
@@ -53,6 +54,7 @@ class RolloutStep:
     fields: dict[str, np.ndarray]
     spacing_m: float
     bounds_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    completed: bool = True  # every particle is there: views draw them all, as in the run
 
 
 def domain(bounds_m) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -90,7 +92,10 @@ def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, sp
                 raise ValueError(shown.error)
             img = Image.fromarray(np.array(shown.image))
             h = round(thumb_width * view.height / view.width)
-            thumbs.append((k, shown.particles, img.resize((thumb_width, h), Image.LANCZOS)))
+            regions = spec.view_regions(view, step.step, step.time_s, step.prev_time_s)
+            fresh = (len(step.positions) if regions is None
+                     else int(inside_mask(step.positions, regions).sum()))
+            thumbs.append((k, fresh, img.resize((thumb_width, h), Image.LANCZOS)))
         rows.append((view, len(frames), thumbs))
         print(f"preview: view {view.name}: {len(frames)} frames scheduled on the rollout, "
               f"{len(thumbs)} shown", file=log)
@@ -107,7 +112,7 @@ def contact_sheet(spec: Spec, positions: np.ndarray, frame_interval_s: float, sp
                       fill="red")
         for c, (k, n, img) in enumerate(thumbs):
             draw.text((c * thumb_width + 4, y + 1),
-                      f"{view.name} t={time_s[k]:.3f}s {n}p", fill="black")
+                      f"{view.name} t={time_s[k]:.3f}s, {n} in regions", fill="black")
             sheet.paste(img, (c * thumb_width, y + LABEL_PX))
     return sheet
 

@@ -16,12 +16,12 @@ from minority.replay import replay
 
 @pytest.fixture(scope="module")
 def small_demo(tmp_path_factory):
-    """The demo's out folder and what it printed."""
+    """The demo's out folder and what it printed (stdout and its progress lines)."""
     out = tmp_path_factory.mktemp("small") / "demo"
     o = DemoOptions(out=out, ranks=2, duration_s=0.3, cell_size_m=0.032, frames=12, width=160,
-                    height=120, timeout_s=300)
+                    height=120, timeout_s=300, http="127.0.0.1:0")
     printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
         assert main(o) == 0
     return out, printed.getvalue()
 
@@ -49,6 +49,24 @@ def test_small_demo_runs_end_to_end_and_replays_identically(small_demo, tmp_path
 
     counts = validate_log(out / "run.mcap")  # every JSON message against its stored schema
     assert counts["minority.Spec"] >= 1 and counts["foxglove.CompressedImage"] == len(frames)
+
+
+def test_small_demo_draws_the_outside_from_the_cache_and_serves_a_live_view(small_demo):
+    """The ranks sent the particles outside the regions once and the server drew them from
+    its cache (the Timing says so); the server's live view was on at the address printed."""
+    import re
+
+    from minority.protocol import Timing
+    from minority.protocol.log import read_log
+
+    out, printed = small_demo
+    timings = [r.decode() for r in read_log(out / "run.mcap", topics=["minority/*/timing"])]
+    assert timings and all(isinstance(t, Timing) for t in timings)
+    assert any(t.cached > 0 for t in timings)
+    assert all(t.cached <= t.particles for t in timings)
+    url = re.search(r"live view: (http://127\.0\.0\.1:\d+/)", printed)
+    assert url, printed
+    assert f"live view: {url.group(1)}" in (out / "server.log").read_text()
 
 
 def test_small_demo_writes_a_movie_and_an_animation_per_view(small_demo):

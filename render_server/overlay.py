@@ -12,7 +12,8 @@ annotated by writing only those pixels:
   the lines' antialiased colours are blended with it once, at composition;
 - legend (colorbar, its title and tick labels): blended over everything, premultiplied
   colour and coverage; text has a halo in the background colour, readable over particles;
-- time text: laid out per frame from glyph bitmaps rendered once per font size.
+- time text: laid out per frame from glyph bitmaps rendered once per font size
+  (`render_server/glyphs.py`, which also holds the font and its sizes).
 
 Applying is a few numba loops over those pixels: well under a millisecond a frame.
 
@@ -28,21 +29,28 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from functools import cache
 
 import numpy as np
 from minority.protocol.fields import colour_label
 from minority.protocol.projection import camera_basis, camera_coordinates, to_pixels
 from minority.protocol.view import View
 from minority.render_server.colormap import view_colormap
+from minority.render_server.glyphs import (
+    TimeText,
+    draw_time,
+    font,
+    font_px,
+    glyphs,
+    halo_px,
+    tick_text,
+    time_label,
+)
 from numba import njit
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image, ImageDraw
 
 Bounds = tuple[tuple[float, float, float], tuple[float, float, float]]  # (lo, hi) corners, m
 
 MIN_TEXT_SIDE = 96  # px: a smaller image gets no text nor colorbar
-FONT_PX_PER_HEIGHT = 1 / 48  # font size (px) per image height (px): 16 px at 768
-FONT_PX = (8, 40)  # smallest and largest font size, px
 GRID_LINES = 10  # about this many grid lines across the domain's longest side
 # coverage of the context lines drawn on the background (ink: black on a light background)
 GRID_ALPHA, EDGE_ALPHA, BBOX_ALPHA = 0.16, 0.32, 0.55
@@ -68,17 +76,6 @@ class Layer:
 
 
 @dataclass(frozen=True)
-class TimeText:
-    """Where and how the per-frame time text goes."""
-
-    x: int  # px, left edge of the text box
-    y: int  # px, top edge
-    font_px: int
-    ink: np.ndarray  # [3] float32 in [0, 255]
-    halo: np.ndarray  # [3] float32 in [0, 255]
-
-
-@dataclass(frozen=True)
 class Overlay:
     """A view's composed annotations, for images of width x height px."""
 
@@ -87,21 +84,6 @@ class Overlay:
     context: Layer  # where no particle is hit
     legend: Layer  # over everything
     time: TimeText | None
-
-
-def time_label(step: int, time_s: float) -> str:
-    """The text of the time annotation, e.g. "t = 0.195 s · step 1652"."""
-    return f"t = {time_s:.3f} s · step {step}"
-
-
-def font_px(height: int) -> int:
-    return int(min(max(round(height * FONT_PX_PER_HEIGHT), FONT_PX[0]), FONT_PX[1]))
-
-
-@cache
-def font(size: int) -> ImageFont.FreeTypeFont:
-    """Pillow's built-in scalable font at `size` px (no font file needed)."""
-    return ImageFont.load_default(size=size)
 
 
 def _luminance(rgb) -> float:
@@ -116,10 +98,6 @@ def _inks(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     text = np.asarray(TEXT_INK_DARK if light else TEXT_INK_LIGHT)
     # the renderer's background is round(bg * 255): blend with exactly what is there
     return np.floor(bg * 255.0 + 0.5), line * 255.0, text * 255.0
-
-
-def halo_px(size: int) -> int:
-    return max(1, size // 8)
 
 
 # --- context: the domain's floor, walls and box as lines -------------------------------
@@ -268,10 +246,6 @@ def compose_context(view: View, bounds: Bounds) -> Layer:
 # --- legend: colorbar, title, tick labels --------------------------------------------
 
 
-def _tick_text(value: float) -> str:
-    return f"{value:.3g}"
-
-
 def compose_legend(view: View) -> Layer:
     """The colorbar at the top right: title (field, unit), the view's colormap from its
     range's low (bottom) to high (top) end, ticks at both ends and the middle."""
@@ -282,7 +256,7 @@ def compose_legend(view: View) -> Layer:
     bar_h = max(3 * size, round(0.35 * h))
     title = colour_label(view.field)
     lo, hi = view.range
-    labels = [(_tick_text(v), frac) for v, frac in ((hi, 0.0), ((lo + hi) / 2, 0.5), (lo, 1.0))]
+    labels = [(tick_text(v), frac) for v, frac in ((hi, 0.0), ((lo + hi) / 2, 0.5), (lo, 1.0))]
     tick = max(2, size // 3)
     label_w = max(f.getlength(t) for t, _ in labels)
     title_w = f.getlength(title)
@@ -330,87 +304,6 @@ def compose_legend(view: View) -> Layer:
     alpha = rgba[rows, cols, 3].astype(np.float32) / 255.0
     return Layer(rows.astype(np.int64) * w + cols + ox,
                  rgba[rows, cols, :3].astype(np.float32) * alpha[:, None], alpha)
-
-
-# --- time text: glyphs rendered once, a string laid out per frame ------------------------
-
-
-class Glyphs:
-    """Bitmaps of one font size's characters, rendered on first use into two atlases (fill
-    and halo coverage, [line height, width] float32 in [0, 1]), with each character's place
-    in them and its advance (px). Text is laid out glyph by glyph (no kerning)."""
-
-    def __init__(self, size: int):
-        self.size = size
-        self.pad = halo_px(size) + 2  # px around a glyph: its halo and overhangs
-        ascent, descent = font(size).getmetrics()
-        self.line_h = ascent + descent + 2 * self.pad
-        self.fill = np.zeros((self.line_h, 0), np.float32)
-        self.halo = np.zeros((self.line_h, 0), np.float32)
-        self.where: dict[str, tuple[int, int, float]] = {}  # char -> atlas x, width, advance
-        self._lock = threading.Lock()
-
-    def _add(self, ch: str) -> None:
-        f = font(self.size)
-        advance = f.getlength(ch)
-        box = (math.ceil(advance) + 2 * self.pad, self.line_h)
-        masks = []
-        for stroke in (0, halo_px(self.size)):
-            img = Image.new("L", box, 0)
-            ImageDraw.Draw(img).text((self.pad, self.pad), ch, font=f, fill=255,
-                                     stroke_width=stroke, stroke_fill=255)
-            masks.append(np.asarray(img, np.float32) / 255.0)
-        x = self.fill.shape[1]
-        self.fill = np.concatenate([self.fill, masks[0]], axis=1)  # new arrays: a reader
-        self.halo = np.concatenate([self.halo, masks[1]], axis=1)  # keeps the old ones
-        self.where[ch] = (x, box[0], advance)
-
-    def layout(self, text: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray]:
-        """For each character of `text`: its atlas x, its width and its x in the text box
-        (int64 [m] each, px), with the fill and halo atlases they index."""
-        missing = set(text) - self.where.keys()
-        if missing:
-            with self._lock:
-                for ch in sorted(missing - self.where.keys()):
-                    self._add(ch)
-        src, width, dst, x = [], [], [], 0.0
-        for ch in text:
-            at, w, advance = self.where[ch]
-            src.append(at)
-            width.append(w)
-            dst.append(round(x))
-            x += advance
-        return (np.array(src, np.int64), np.array(width, np.int64), np.array(dst, np.int64),
-                self.fill, self.halo)
-
-
-@cache
-def glyphs(size: int) -> Glyphs:
-    return Glyphs(size)
-
-
-@njit(cache=True, nogil=True)
-def _draw_glyphs(image, y0, x0, fill, halo, src, width, dst, ink, halo_rgb):
-    """Blend laid-out glyphs into image [h, w, 3] uint8 at (x0, y0) px: every halo, then
-    every fill, clipped to the image."""
-    h, w = image.shape[0], image.shape[1]
-    for layer in range(2):
-        mask = halo if layer == 0 else fill
-        colour = halo_rgb if layer == 0 else ink
-        for g in range(src.shape[0]):
-            for r in range(mask.shape[0]):
-                y = y0 + r
-                if y < 0 or y >= h:
-                    continue
-                for c in range(width[g]):
-                    x = x0 + dst[g] + c
-                    a = mask[r, src[g] + c]
-                    if x < 0 or x >= w or a <= 0.0:
-                        continue
-                    for k in range(3):
-                        image[y, x, k] = np.uint8(image[y, x, k] * (1.0 - a) + colour[k] * a
-                                                  + 0.5)
 
 
 @njit(cache=True, nogil=True)
@@ -488,13 +381,6 @@ class OverlayCache:
 
 
 OVERLAYS = OverlayCache()  # the process's overlays (daemon, replay and preview share it)
-
-
-def draw_time(image: np.ndarray, style: TimeText, text: str) -> None:
-    """Blend `text` (halo, then ink) into image [h, w, 3] uint8 at the style's place,
-    clipped to the image."""
-    src, width, dst, fill, halo = glyphs(style.font_px).layout(text)
-    _draw_glyphs(image, style.y, style.x, fill, halo, src, width, dst, style.ink, style.halo)
 
 
 NO_HIT = np.zeros(0, np.bool_)

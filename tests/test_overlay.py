@@ -14,7 +14,7 @@ from minority.protocol.fields import FIELDS, colour_label
 from minority.protocol.schemas import JSON_SCHEMAS
 from minority.protocol.spec import Spec
 from minority.protocol.view import NO_ANNOTATIONS, Annotations
-from minority.render_server import overlay
+from minority.render_server import glyphs, overlay
 from minority.render_server.assemble import AssembledStep
 from minority.render_server.colormap import view_colormap
 from minority.render_server.render import Canvas, encode_png, prepare, render
@@ -115,7 +115,7 @@ def test_time_text_changes_with_the_step_and_nothing_else_does():
     assert ys.max() < HEIGHT // 4 and xs.max() < WIDTH // 2  # the label, top left
     bare = plain(make_step(), spec.views[0])[0]
     np.testing.assert_array_equal(first[HEIGHT // 4:], bare[HEIGHT // 4:])
-    assert overlay.time_label(1652, 0.1951) == "t = 0.195 s · step 1652"
+    assert glyphs.time_label(1652, 0.1951) == "t = 0.195 s · step 1652"
 
 
 def test_context_is_drawn_on_the_background_and_never_over_particles():

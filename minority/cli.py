@@ -118,7 +118,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                              "DIR/{run}.mcap", BAD_INPUT)
     live = None
     if args.http is not None:  # bound before anything starts: a bad address exits at once
-        from minority.render_server.live import LiveView, parse_address
+        from minority.render_server.live import LiveView
+        from minority.render_server.live_http import parse_address
         try:
             live = LiveView(args.out, *parse_address(args.http))
         except ValueError as exc:

@@ -46,7 +46,7 @@ class DemoOptions:
 
     def __post_init__(self) -> None:
         from minority.gns.oracle import OracleOptions
-        from minority.render_server.live import parse_address
+        from minority.render_server.live_http import parse_address
 
         OracleOptions(frames=self.frames)  # a budget the oracle refuses fails now, not later
         if self.http is not None:
@@ -121,7 +121,7 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
            "NUMBA_NUM_THREADS": str(o.threads)}
     live = []
     if o.http is not None:
-        from minority.render_server.live import parse_address
+        from minority.render_server.live_http import parse_address
 
         host, http_port = parse_address(o.http)
         http_port = http_port or free_port()

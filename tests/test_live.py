@@ -18,7 +18,8 @@ import pytest
 from conftest import free_port, make_png, make_spec
 from minority.protocol import Event, EventKind, Frame, Spec, Stats, Timing
 from minority.protocol.messages import SPEED_BINS
-from minority.render_server.live import LiveView, parse_address
+from minority.render_server.live import LiveView
+from minority.render_server.live_http import parse_address
 from test_loopback import TIMEOUT_S, wait_until
 from test_render_daemon import EveryStep
 

@@ -15,7 +15,7 @@ from minority.render_server.particles import ParticleCache, complete_step
 from minority.sim.context import ContextTracker
 from minority.sim.ranks import run_ranks
 from test_loopback import wait_until
-from test_sim_publish import FRONT_BOX, RUN, config, spec_dict
+from test_sim_publish import RUN, config, spec_dict
 
 
 def chunk_with_context(n=10, context=4, evict=(7, 9), reset=True) -> Chunk:

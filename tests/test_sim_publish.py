@@ -139,7 +139,9 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
                                                    lambda s: tokens.append(s.kind), history=True)
     try:
         log = io.StringIO()
-        summary = run_ranks(config(endpoint, tmp_path, 40), stream=log)
+        # the regions alone (context rows, sent again as the tiny scene's particles all fall,
+        # are tests/test_particle_cache.py's)
+        summary = run_ranks(config(endpoint, tmp_path, 40, context=False), stream=log)
         assert summary.spec_version == 2 and summary.run == RUN
         p = summary.publish
         assert (p["scheduled"], p["sent"], p["dropped"]) == (3, 3, 0)  # steps 0, 20, 40
@@ -155,8 +157,8 @@ def test_rank_fetches_the_spec_and_the_server_renders_culled_chunks(server, clie
             c = got[step]
             assert set(c.fields) == {"positions", "displacement"}  # nothing else
             inside = x[x[:, 0] >= np.float32(0.05)]
-            assert 0 < c.fresh == len(inside) < 400  # the rest: context rows (sim.context)
-            assert np.array_equal(sorted_rows(c.positions[:c.fresh]), sorted_rows(inside))
+            assert 0 < c.count == len(inside) < 400 and c.context_ids is None
+            assert np.array_equal(sorted_rows(c.positions), sorted_rows(inside))
         assert p["particles_sent"] == sum(c.count for c in got.values()) < p["particles_total"]
         assert p["bytes_sent"] == sum(len(c.encode()) for c in got.values())
         start, done, end = (decode_as(events.get(1).payload, Event) for _ in range(3))

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
@@ -123,68 +124,115 @@ def _stats(trajs: list[np.ndarray]) -> dict:
             "acc_mean": am.tolist(), "acc_std": std(acc_sq, na, am)}
 
 
-def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
-          connectivity_radius_m: float, config_path: str = "", coarse_grain: int = 1,
-          coarse_grain_method: str = "mean", log=None) -> dict:
-    """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir, coarse-grained by
-    `coarse_grain` (1: as run) with `coarse_grain_method`; return the metadata."""
+@dataclass
+class Packed:
+    """One trajectory as the dataset stores it."""
+
+    name: str
+    split: str  # one of SPLITS
+    positions: np.ndarray  # [frames, n, 3] float32, m
+    friction_angle_deg: float
+    bounds_m: np.ndarray  # [3, 2] lo, hi per axis, m
+    frame_interval_s: float  # s
+    particle_spacing_m: float  # m
+    particle_type: np.ndarray | None = None  # [n] int; None: all PARTICLE_TYPE_SAND
+    attrs: dict = field(default_factory=dict)  # more group attrs (floats)
+    scene: dict = field(default_factory=dict)  # more fields of the metadata's scene entry
+
+
+def pack(items: Iterable[Packed], out_dir: str | Path, *, connectivity_radius_m: float,
+         spacing_rtol: float = 0.0, meta: dict | None = None, log=None) -> dict:
+    """Write trajectories, one at a time, into out_dir (train.h5, valid.h5, test.h5,
+    metadata.json) and return the metadata: its statistics from the train split, `meta`'s
+    keys added. One dataset has one frame interval; particle spacings may differ by
+    spacing_rtol (relative; the metadata records their median)."""
     log = sys.stderr if log is None else log  # the stream of the call, not of the import
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}
-    scenes, train_pos, frame_dt, spacing = [], [], set(), set()
+    scenes, train_pos, frame_dt, spacing, phis = [], [], set(), [], []
     bounds_hi = np.zeros(3)
-    phis = []
     try:
-        for plan, path in runs:
-            pos, attrs = read_sim_trajectory(path, stride, coarse_grain, coarse_grain_method)
-            dt = float(attrs["output_interval_s"]) * stride
-            frame_dt.add(round(dt, 12))
-            spacing.add(round(float(attrs["particle_spacing_m"]), 9))
-            g = files[plan.split].create_group(plan.name)
+        for it in items:
+            pos = it.positions
+            if it.split not in SPLITS:
+                raise DatasetError(f"{it.name}: split {it.split!r}, expected one of {SPLITS}")
+            if it.name in files[it.split]:
+                raise DatasetError(f"two {it.split} trajectories named {it.name!r}")
+            if pos.shape[0] < INPUT_VELOCITIES + 2:
+                raise DatasetError(f"{it.name}: {pos.shape[0]} frames; a training window "
+                                   f"needs {INPUT_VELOCITIES + 2}")
+            frame_dt.add(round(float(it.frame_interval_s), 12))
+            spacing.append(float(it.particle_spacing_m))
+            g = files[it.split].create_group(it.name)
             g.create_dataset("positions", data=pos, chunks=(1, *pos.shape[1:]))
-            g.attrs["friction_angle_deg"] = attrs["friction_angle_deg"]
-            g.attrs["bounds_m"] = np.asarray(attrs["bounds_m"], np.float64)
-            for key in ("length_m", "width_m", "height_m", "aspect_ratio"):
-                g.attrs[key] = float(getattr(plan, key))
-            bounds_hi = np.maximum(bounds_hi, np.asarray(attrs["bounds_m"])[:, 1])
-            if plan.split == "train":
+            if it.particle_type is not None:
+                g.create_dataset("particle_type", data=np.asarray(it.particle_type, np.int32))
+            g.attrs["friction_angle_deg"] = float(it.friction_angle_deg)
+            g.attrs["bounds_m"] = np.asarray(it.bounds_m, np.float64)
+            for key, value in it.attrs.items():
+                g.attrs[key] = value
+            bounds_hi = np.maximum(bounds_hi, np.asarray(it.bounds_m)[:, 1])
+            if it.split == "train":
                 train_pos.append(pos)
-                phis.append(attrs["friction_angle_deg"])
-            scenes.append({"name": plan.name, "split": plan.split, "particles": pos.shape[1],
-                           "frames": pos.shape[0], "aspect_ratio": round(plan.aspect_ratio, 4),
-                           "length_m": plan.length_m, "width_m": plan.width_m,
-                           "height_m": plan.height_m,
-                           "friction_angle_deg": attrs["friction_angle_deg"],
-                           "source": str(path),
-                           # the MPM run's own deposit, at its resolution (the model's data
-                           # are coarse-grained from it when coarse_grain > 1)
-                           "mpm_deposit": attrs["mpm_deposit"]})
-            print(f"dataset: {plan.split}/{plan.name} {pos.shape[0]} frames x {pos.shape[1]} "
+                phis.append(float(it.friction_angle_deg))
+            scenes.append({"name": it.name, "split": it.split, "particles": pos.shape[1],
+                           "frames": pos.shape[0],
+                           "friction_angle_deg": float(it.friction_angle_deg), **it.scene})
+            print(f"dataset: {it.split}/{it.name} {pos.shape[0]} frames x {pos.shape[1]} "
                   "particles", file=log, flush=True)
     finally:
         for f in files.values():
             f.close()
-    if len(frame_dt) != 1 or len(spacing) != 1:
+    lo, hi = (min(spacing), max(spacing)) if spacing else (0.0, 0.0)
+    if len(frame_dt) > 1 or hi - lo > spacing_rtol * lo + 1e-9 * hi:
         raise DatasetError(f"runs differ in frame interval {sorted(frame_dt)} s or particle "
-                           f"spacing {sorted(spacing)} m; one dataset needs one of each")
+                           f"spacing {sorted(set(spacing))} m; one dataset needs one of each")
     if not train_pos:
         raise DatasetError("no train scenes")
     meta = {
         "format": FORMAT, "dim": 3, "input_velocities": INPUT_VELOCITIES,
         "bounds_m": [[0.0, float(h)] for h in bounds_hi],
         "connectivity_radius_m": connectivity_radius_m,
-        "particle_spacing_m": spacing.pop(), "frame_interval_s": frame_dt.pop(),
-        "coarse_grain": coarse_grain, "coarse_grain_method": coarse_grain_method,
+        "particle_spacing_m": float(np.median(spacing)), "frame_interval_s": frame_dt.pop(),
+        "coarse_grain": 1, "coarse_grain_method": "mean",
         **_stats(train_pos),
         # one friction angle in every train scene: the feature is 0, its scale 1 (not 0/0)
         "friction_mean_deg": float(np.mean(phis)), "friction_std_deg": float(np.std(phis)) or 1.0,
-        "scenes": scenes, "config": str(config_path),
+        "scenes": scenes, "config": "",
         "units": {"positions": "m", "velocity": "m/frame", "acceleration": "m/frame^2",
                   "frame_interval_s": "s", "friction": "deg"},
+        **(meta or {}),
     }
     (out / "metadata.json").write_text(json.dumps(meta, indent=1))
     return meta
+
+
+def build(runs: list[tuple[object, Path]], out_dir: str | Path, *, stride: int,
+          connectivity_radius_m: float, config_path: str = "", coarse_grain: int = 1,
+          coarse_grain_method: str = "mean", log=None) -> dict:
+    """Pack finished sweep runs [(ScenePlan, HDF5 path)] into out_dir, coarse-grained by
+    `coarse_grain` (1: as run) with `coarse_grain_method`; return the metadata."""
+
+    def items():
+        for plan, path in runs:
+            pos, attrs = read_sim_trajectory(path, stride, coarse_grain, coarse_grain_method)
+            geometry = {k: float(getattr(plan, k))
+                        for k in ("length_m", "width_m", "height_m", "aspect_ratio")}
+            yield Packed(plan.name, plan.split, pos, attrs["friction_angle_deg"],
+                         np.asarray(attrs["bounds_m"], np.float64),
+                         float(attrs["output_interval_s"]) * stride,
+                         round(float(attrs["particle_spacing_m"]), 9), attrs=geometry,
+                         scene={"aspect_ratio": round(plan.aspect_ratio, 4),
+                                "length_m": plan.length_m, "width_m": plan.width_m,
+                                "height_m": plan.height_m, "source": str(path),
+                                # the MPM run's own deposit, at its resolution (the model's
+                                # data are coarse-grained from it when coarse_grain > 1)
+                                "mpm_deposit": attrs["mpm_deposit"]})
+
+    return pack(items(), out_dir, connectivity_radius_m=connectivity_radius_m, log=log,
+                meta={"coarse_grain": coarse_grain, "coarse_grain_method": coarse_grain_method,
+                      "config": str(config_path)})
 
 
 def load_metadata(path: str | Path) -> dict:

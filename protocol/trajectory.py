@@ -25,11 +25,36 @@ are backward differences; attrs frame_interval_s (s) and the caller's (bounds_m,
 particle_spacing_m, scene, checkpoint, ...; dicts and lists as JSON).
 
 Both: attrs format, units (JSON: the unit of every dataset and attr above), n_particles.
+
+Any simulator's run (read_trajectory; the GNS dataset builder's `--from-runs`): a plain HDF5
+file that needs only
+
+    positions      [frames, n, 3] float, m (z up: the model's gravity axis)
+    attr frame_interval_s   s between frames (an MPM run's output_interval_s is read as it;
+                            without either, a `time` dataset of uniform steps gives it)
+    attr bounds_m  [3, 2] float, m: lo, hi per axis of the domain; its faces are the walls
+                   the GNS sees (node features: distance to each face)
+
+and may add
+
+    time           [frames] float64, s; when present, len(time) frames are complete
+    particle_type  [n] int, the GNS's particle types: PARTICLE_TYPE_SAND (6, the default)
+                   for material the model moves, PARTICLE_TYPE_KINEMATIC (3) for boundary
+                   particles the simulator moves (the dataset leaves them out: walls are
+                   bounds_m)
+    material       [n] float, friction angle in degrees: the model's material feature, one
+                   value per run
+    attr particle_spacing_m  m, the seeding spacing (rollouts seed new scenes at it);
+                   estimated from frame 0 when absent
+    attr scene_name (or name)  the run's name (default: the file's stem)
+
+Every other dataset and attr is ignored. A `minority sim` run is such a file.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
@@ -39,6 +64,7 @@ SIM_FORMAT = "minority-sim-trajectory/1"
 ROLLOUT_FORMAT = "minority-gns-rollout/1"
 FORMATS = (SIM_FORMAT, ROLLOUT_FORMAT)
 PARTICLE_TYPE_SAND = 6  # the id GNS (learning_to_simulate lineage) uses for sand
+PARTICLE_TYPE_KINEMATIC = 3  # GNS: a particle moved by the simulator (a boundary), not the model
 FRAME_FIELDS = ("positions", "velocities", "displacements")  # [frames, n, 3] float32
 SIM_SERIES = {"step": ((), "i8"), "kinetic_energy": ((), "f8"), "momentum": ((3,), "f8")}
 UNITS = {
@@ -209,3 +235,100 @@ def read_rollout(path: str | Path) -> dict:
         raise TrajectoryError(f"{path}: bounds_m must be [3, 2] lo, hi per axis (m): "
                               f"{exc!r}") from None
     return out
+
+
+@dataclass
+class RunTrajectory:
+    """A run of any simulator (the layout in this module's docstring), checked."""
+
+    name: str
+    positions: np.ndarray  # [frames, n, 3] float32, m: every stride-th complete frame
+    frame_interval_s: float  # s between the frames of `positions` (stride included)
+    bounds_m: np.ndarray  # [3, 2] float64, m: lo, hi per axis
+    particle_type: np.ndarray  # [n] int32 (PARTICLE_TYPE_SAND where the file has none)
+    material: np.ndarray | None  # [n] float32, friction angle in degrees; None: absent
+    particle_spacing_m: float | None  # m; None: absent
+    attrs: dict = field(default_factory=dict)  # every attribute of the file, JSON decoded
+
+
+def _run_frame_interval(f: h5py.File, frames: int) -> float:
+    for key in ("frame_interval_s", "output_interval_s"):
+        if key in f.attrs:
+            return float(np.asarray(f.attrs[key]).reshape(()))
+    if "time" in f and frames >= 2:
+        steps = np.diff(np.asarray(f["time"][:frames], dtype=np.float64))
+        if np.allclose(steps, steps[0], rtol=1e-6, atol=0.0):
+            return float(steps[0])
+        raise TrajectoryError("time is not uniformly spaced; add attr frame_interval_s (s)")
+    raise TrajectoryError("no frame interval: add attr frame_interval_s (s between frames)")
+
+
+def _per_particle(f: h5py.File, name: str, n: int, kind: str) -> np.ndarray | None:
+    if name not in f:
+        return None
+    data = np.asarray(f[name][...])
+    if data.shape != (n,) or data.dtype.kind not in kind:
+        raise TrajectoryError(f"{name} must be [n] = [{n}] {'int' if kind == 'iu' else 'float'}"
+                              f", got {list(data.shape)} {data.dtype}")
+    return data
+
+
+def read_trajectory(path: str | Path, stride: int = 1) -> RunTrajectory:
+    """A run of any simulator in the layout of this module's docstring: every stride-th
+    complete frame and the particle data, checked. Raises TrajectoryError naming the file and
+    what is missing or malformed."""
+    path = Path(path)
+    if stride < 1:
+        raise TrajectoryError(f"{path}: stride {stride} must be >= 1")
+    try:
+        with open_trajectory(path) as f:
+            missing = [k for k in ("positions",) if k not in f] + [
+                f"attr {k}" for k in ("bounds_m",) if k not in f.attrs]
+            if missing:
+                raise TrajectoryError(f"missing {', '.join(missing)} (required: positions "
+                                      "[frames, n, 3] m, attr bounds_m [3, 2] m, attr "
+                                      "frame_interval_s s)")
+            ds = f["positions"]
+            if not isinstance(ds, h5py.Dataset) or ds.ndim != 3 or ds.shape[2] != 3 \
+                    or ds.dtype.kind != "f":
+                raise TrajectoryError(f"positions must be a float dataset [frames, n, 3] (m), "
+                                      f"got {getattr(ds, 'shape', 'a group')}")
+            frames = min(complete_frames(f), ds.shape[0])
+            n = ds.shape[1]
+            if frames < 2 or n < 1:
+                raise TrajectoryError(f"positions hold {frames} complete frames of {n} "
+                                      "particles; at least 2 frames of 1 particle are needed")
+            dt = _run_frame_interval(f, frames)
+            pos = ds[:frames:stride].astype(np.float32)
+            ptype = _per_particle(f, "particle_type", n, "iu")
+            material = _per_particle(f, "material", n, "fiu")
+            attrs = {k: attribute(v) for k, v in f.attrs.items()}
+    except TrajectoryError as exc:
+        raise TrajectoryError(f"{path}: {exc}") from None
+    except (OSError, KeyError, TypeError, ValueError) as exc:
+        raise TrajectoryError(f"{path}: cannot read the trajectory ({exc})") from None
+    if not np.isfinite(dt) or dt <= 0:
+        raise TrajectoryError(f"{path}: frame interval {dt} s must be finite and > 0")
+    try:
+        bounds = np.asarray(attrs["bounds_m"], dtype=np.float64).reshape(3, 2)
+    except (ValueError, TypeError) as exc:
+        raise TrajectoryError(f"{path}: bounds_m must be [3, 2] lo, hi per axis (m): "
+                              f"{exc}") from None
+    if not np.isfinite(bounds).all() or (bounds[:, 1] <= bounds[:, 0]).any():
+        raise TrajectoryError(f"{path}: bounds_m {bounds.tolist()} must be finite with lo < hi "
+                              "on every axis (m)")
+    if not np.isfinite(pos).all():
+        bad = int(np.argmax(~np.isfinite(pos).all(axis=(1, 2)))) * stride
+        raise TrajectoryError(f"{path}: non-finite positions (first in frame {bad})")
+    if material is not None and not np.isfinite(material).all():
+        raise TrajectoryError(f"{path}: non-finite material (friction angle, deg)")
+    spacing = attrs.get("particle_spacing_m")
+    if spacing is not None:
+        spacing = float(np.asarray(spacing).reshape(()))
+        if not np.isfinite(spacing) or spacing <= 0:
+            raise TrajectoryError(f"{path}: particle_spacing_m {spacing} must be > 0 (m)")
+    name = str(attrs.get("scene_name") or attrs.get("name") or path.stem)
+    return RunTrajectory(
+        name, pos, dt * stride, bounds,
+        np.full(n, PARTICLE_TYPE_SAND, np.int32) if ptype is None else ptype.astype(np.int32),
+        None if material is None else material.astype(np.float32), spacing, attrs)

@@ -50,12 +50,23 @@ def _existing(text: str) -> Path:
     return Path(text)
 
 
+def _existing_path(text: str) -> Path:
+    """An input file or directory that must exist (a usage error, exit status 2, if not)."""
+    if not Path(text).exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file or directory")
+    return Path(text)
+
+
 def _dataset_parser(osub) -> None:
-    q = command(osub, "dataset", help="run the MPM sweep of a config and build the dataset",
-                description="Plan column-collapse scenes from the config's ranges (train / "
-                            "valid / test by scene, held-out aspect ratios and friction angles "
-                            "in test), run each with `minority sim` (finished runs are kept and "
-                            "skipped), pack the dataset.")
+    q = command(osub, "dataset", help="build the dataset: our MPM sweep, any simulator's runs, "
+                                      "or a geoelements/gns npz dataset",
+                description="By default: plan column-collapse scenes from the config's ranges "
+                            "(train / valid / test by scene, held-out aspect ratios and "
+                            "friction angles in test), run each with `minority sim` (finished "
+                            "runs are kept and skipped), pack the dataset. --from-runs packs "
+                            "HDF5 runs of any simulator instead (layout: gns/README.md, "
+                            "'Runs of any simulator'); --from-npz converts a dataset of "
+                            "geoelements/gns (train.npz, valid.npz, test.npz, metadata.json).")
     q.add_argument("--config", type=_existing,
                    help="sweep config TOML (default: the shipped gns/configs/column_sweep.toml)")
     q.add_argument("--runs", type=Path, default=Path("data/sweep"), metavar="DIR",
@@ -69,6 +80,34 @@ def _dataset_parser(osub) -> None:
                         "else 0)")
     q.add_argument("--jobs", type=int, default=1, help="sims run at once")
     q.add_argument("--threads", type=int, default=1, help="numba threads per sim")
+    src = q.add_mutually_exclusive_group()
+    src.add_argument("--from-runs", type=_existing_path, action="append", metavar="PATH",
+                     help="pack these runs instead of the sweep: an .h5 file or a folder of "
+                          "them (repeatable); a folder's train/, valid/, test/ subfolders "
+                          "give their splits, other files are split by --valid / --test")
+    src.add_argument("--from-npz", type=_existing_path, metavar="DIR",
+                     help="convert this geoelements/gns dataset instead of the sweep")
+    q.add_argument("--valid", type=int, default=1, metavar="N",
+                   help="--from-runs: the last N runs by file name (before the test ones) "
+                        "validate")
+    q.add_argument("--test", type=int, default=0, metavar="N",
+                   help="--from-runs: the last N runs by file name are the test split")
+    q.add_argument("--stride", type=int, default=1, metavar="K",
+                   help="--from-runs: keep every K-th frame (the model's frame interval is K "
+                        "frame intervals of the runs)")
+    q.add_argument("--radius", type=float, metavar="M",
+                   help="--from-runs, --from-npz: connectivity radius, m (default: 1.81 "
+                        "particle spacings, as the shipped model; --from-npz: the radius its "
+                        "metadata.json gives)")
+    q.add_argument("--friction-deg", type=float, metavar="DEG",
+                   help="--from-runs, --from-npz: friction angle of runs that carry no "
+                        "material (without it such a run is refused)")
+    q.add_argument("--material", choices=["tan_phi", "deg", "none"], default="tan_phi",
+                   help="--from-npz: what a trajectory's material_property holds: tan of the "
+                        "friction angle (their ColumnCollapseFrictional data), degrees, or "
+                        "nothing to use")
+    q.add_argument("--frame-interval", type=float, metavar="S",
+                   help="--from-npz: s between frames (default: the metadata's dt)")
     q.set_defaults(func=_cmd_dataset)
 
 
@@ -78,21 +117,84 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     from minority.sweep import run_sweep
 
     try:
-        args.config = args.config or DEFAULT_SWEEP
-        cfg = load_config(args.config)
-        for key in ("extra_train", "extra_valid"):
-            if getattr(args, key) is not None:
-                cfg.splits = {**cfg.splits, key: getattr(args, key)}
-        runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
-        meta = build(runs, args.out, stride=cfg.stride,
-                     connectivity_radius_m=cfg.connectivity_radius_m, config_path=str(args.config),
-                     coarse_grain=cfg.coarse_grain,
-                     coarse_grain_method=cfg.coarse_grain_method)
+        if args.from_runs or args.from_npz:
+            meta = _dataset_from_files(args)
+        else:
+            args.config = args.config or DEFAULT_SWEEP
+            cfg = load_config(args.config)
+            for key in ("extra_train", "extra_valid"):
+                if getattr(args, key) is not None:
+                    cfg.splits = {**cfg.splits, key: getattr(args, key)}
+            runs = run_sweep(cfg, args.runs, jobs=args.jobs, threads=args.threads)
+            meta = build(runs, args.out, stride=cfg.stride,
+                         connectivity_radius_m=cfg.connectivity_radius_m,
+                         config_path=str(args.config), coarse_grain=cfg.coarse_grain,
+                         coarse_grain_method=cfg.coarse_grain_method)
     except (SweepError, DatasetError, OSError) as exc:
         return _fail("dataset", exc, FAILED)
+    except ValueError as exc:  # a run or npz file that is not in its layout
+        return _fail("dataset", exc, BAD_INPUT)
     counts = {s: sum(sc["split"] == s for sc in meta["scenes"]) for s in ("train", "valid", "test")}
     print(f"dataset {args.out}: {counts}, frame interval {meta['frame_interval_s']} s, "
           f"radius {meta['connectivity_radius_m']} m", file=sys.stderr)
+    return 0
+
+
+def _dataset_from_files(args: argparse.Namespace) -> dict:
+    """The dataset of --from-runs or --from-npz. Raises ValueError (bad input: checked before
+    anything is written) or DatasetError / OSError."""
+    from minority.gns.dataset import DatasetError
+    from minority.gns.from_runs import build_from_runs, collect
+    from minority.gns.npz import NpzError, import_npz
+
+    try:
+        if args.from_npz:
+            return import_npz(args.from_npz, args.out, material=args.material,
+                              frame_interval_s=args.frame_interval,
+                              friction_deg=args.friction_deg,
+                              connectivity_radius_m=args.radius)
+        collect(args.from_runs, args.valid, args.test)  # the splits, before any file is read
+        return build_from_runs(args.from_runs, args.out, stride=args.stride, valid=args.valid,
+                               test=args.test, connectivity_radius_m=args.radius,
+                               friction_deg=args.friction_deg)
+    except (NpzError, DatasetError) as exc:  # bad input, not a failure at run time
+        raise ValueError(str(exc)) from None
+
+
+# --- export-npz -------------------------------------------------------------------------
+
+def _export_npz_parser(osub) -> None:
+    q = command(osub, "export-npz", help="write a dataset in the npz layout of geoelements/gns",
+                description="Write DATASET as geoelements/gns reads one: train.npz, valid.npz, "
+                            "test.npz (per trajectory: positions [T, n, 3] m, particle_type "
+                            "[n], the friction angle as their material_property) and "
+                            "metadata.json (bounds, sequence_length, "
+                            "default_connectivity_radius, dim, dt, velocity and acceleration "
+                            "statistics, plus a 'minority' section that `minority oracle "
+                            "dataset --from-npz` reads back).")
+    q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
+    add_out(q, "directory of the npz dataset", metavar="DIR", required=True)
+    q.add_argument("--material", choices=["tan_phi", "deg", "none"], default="tan_phi",
+                   help="the friction angle as tan(phi) (their ColumnCollapseFrictional "
+                        "data), in degrees, or not written")
+    q.set_defaults(func=_cmd_export_npz)
+
+
+def _cmd_export_npz(args: argparse.Namespace) -> int:
+    from minority.gns.dataset import DatasetError
+    from minority.gns.npz import export_npz
+
+    if (status := missing("oracle export-npz", args.dataset)) is not None:
+        return status
+    try:
+        meta = export_npz(args.dataset, args.out, material=args.material)
+    except DatasetError as exc:
+        return _fail("export-npz", exc, BAD_INPUT)
+    except OSError as exc:
+        return _fail("export-npz", exc, FAILED)
+    n = sum(len(v) for v in meta["minority"]["scenes"].values())
+    print(f"npz dataset {args.out}: {n} trajectories, dt {meta['dt']} s, radius "
+          f"{meta['default_connectivity_radius']} m", file=sys.stderr)
     return 0
 
 
@@ -486,15 +588,17 @@ def _cmd_preview(args: argparse.Namespace) -> int:
 
 # --- oracle -----------------------------------------------------------------------------
 
-STEPS = {"dataset": _dataset_parser, "train": _train_parser, "evaluate": _evaluate_parser,
-         "diagnose": _diagnose_parser, "ship": _ship_parser, "rollout": _rollout_parser,
-         "spec": _spec_parser, "preview": _preview_parser}  # pipeline order
+STEPS = {"dataset": _dataset_parser, "export-npz": _export_npz_parser, "train": _train_parser,
+         "evaluate": _evaluate_parser, "diagnose": _diagnose_parser, "ship": _ship_parser,
+         "rollout": _rollout_parser, "spec": _spec_parser, "preview": _preview_parser}  # pipeline order
 
 
 def add_parser(sub) -> None:
     """Add `oracle` and its steps to the `minority` subparsers `sub`."""
     p = command(sub, "oracle", help=f"GNS surrogate: {', '.join(STEPS)}",
-                description="Build the GNS training set from MPM runs, train the surrogate, "
+                description="Build the GNS training set from MPM runs (or any simulator's "
+                            "runs, or a geoelements/gns npz dataset; export-npz writes one), "
+                            "train the surrogate, "
                             "evaluate and diagnose it, ship a checkpoint, roll it out on a "
                             "scene, derive oracle specs and preview them. Exit status 2 on "
                             "bad input, 1 when a step fails at run time.")

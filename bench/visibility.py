@@ -21,7 +21,7 @@ from minority.gns.oracle import AERIAL_DIRECTION, fit_camera
 from minority.protocol.spec import View
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import seed_particles
-from minority.sim.visibility import visible_mask
+from minority.insitu.visibility import visible_mask
 
 VIEWS = {"side": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "top": ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
          "aerial": (AERIAL_DIRECTION, (0.0, 0.0, 1.0))}

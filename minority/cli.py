@@ -274,7 +274,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         publish = None
         if not args.no_publish:
             from minority.protocol.session import options_from_args
-            from minority.sim.publish import PublishOptions
+            from minority.insitu.publisher import PublishOptions
 
             record = parent_made(args.record) if args.record else None
             try:

@@ -190,8 +190,8 @@ def _start_publishing(config, scene, sim, comm, log):
         return None, config.run, None
     from minority.protocol.session import shm_pool_for
     from minority.protocol.spec import Spec
-    from minority.sim.payload import SIM_FIELDS, particle_bytes
-    from minority.sim.publish import RankPublisher
+    from minority.insitu.payload import SIM_FIELDS, particle_bytes
+    from minority.insitu.publisher import RankPublisher
 
     rank, ranks = comm.Get_rank(), comm.Get_size()
     bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))

@@ -1,7 +1,9 @@
 """One import name: the distribution adds only `minority` to the import namespace (the
-repository's folders protocol/, sim/, gns/, render_server/ install as its subpackages), and
-the layering holds: protocol imports none of the others; sim, gns and render_server import
-protocol but never each other; none of them imports the command layer (minority.cli, ...)."""
+repository's folders protocol/, insitu/, sim/, gns/, render_server/ install as its subpackages),
+and the layering holds: protocol imports none of the others; insitu (the in situ API) imports
+protocol only; sim imports protocol and insitu; gns and render_server import protocol; sim,
+gns and render_server never import each other; none of them imports the command layer
+(minority.cli, ...)."""
 
 import ast
 import subprocess
@@ -12,8 +14,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).parent.parent
-LAYERS = {"protocol": set(), "sim": {"protocol"}, "gns": {"protocol"},
-          "render_server": {"protocol"}}
+LAYERS = {"protocol": set(), "insitu": {"protocol"}, "sim": {"protocol", "insitu"},
+          "gns": {"protocol"}, "render_server": {"protocol"}}
+OLD_NAMES = ("protocol", "insitu", "sim", "gns", "render_server")
 
 
 def test_the_only_top_level_import_name_is_minority():
@@ -23,9 +26,9 @@ def test_the_only_top_level_import_name_is_minority():
 
 
 def test_the_subpackages_import_from_anywhere_and_the_old_names_do_not(tmp_path):
-    code = ("import importlib.util as u, minority.protocol, minority.sim, minority.gns, "
-            "minority.render_server; "
-            "print([n for n in ('protocol', 'sim', 'gns', 'render_server') if u.find_spec(n)])")
+    code = ("import importlib.util as u, minority.protocol, minority.insitu, minority.sim, "
+            "minority.gns, minority.render_server; "
+            f"print([n for n in {OLD_NAMES!r} if u.find_spec(n)])")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -41,7 +44,7 @@ def imported(path: Path) -> set[str]:
                  else [])
         for name in names:
             parts = name.split(".")
-            if parts[0] in ("protocol", "sim", "gns", "render_server"):
+            if parts[0] in OLD_NAMES:
                 found.add(f"old name {parts[0]}")
             elif parts[0] == "minority" and len(parts) > 1:
                 found.add(parts[1])

@@ -12,7 +12,7 @@ from minority.protocol.spec import inside_mask
 from minority.render_server.assemble import StepAssembler
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.particles import ParticleCache, complete_step
-from minority.sim.context import ContextTracker
+from minority.insitu.context import ContextTracker
 from minority.sim.ranks import run_ranks
 from test_loopback import wait_until
 from test_sim_publish import RUN, config, spec_dict

@@ -27,9 +27,9 @@ from minority.protocol.view import Window
 from minority.protocol.wire import decode
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.sim.driver import Simulator
-from minority.sim.outbox import CONTROL, STATS, Outbox, OutboxItem
-from minority.sim.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
-from minority.sim.publish import PublishOptions, record_path
+from minority.insitu.outbox import CONTROL, STATS, Outbox, OutboxItem
+from minority.insitu.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
+from minority.insitu.publisher import PublishOptions, record_path
 from minority.sim.ranks import RankRunConfig, run_ranks
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import PARTICLE_FIELDS, seed_particles
@@ -290,7 +290,7 @@ def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_co
     bound), step 3 and step 4 (not put while stalled) are dropped_stalled; the server
     answers the probe again and step 5 is sent and confirmed. `sent` never exceeds what the
     subscriber received."""
-    from minority.sim import publish
+    from minority.insitu import publisher as publish
 
     spec = Spec.from_dict(spec_dict(every_steps=1))
     answering = threading.Event()
@@ -618,7 +618,7 @@ def test_stats_every_s_must_be_a_time():
 def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpoint, tmp_path):
     """The server's session listens before its spec queryable exists (it is warming up):
     the rank keeps asking within --wait and follows the served spec, not the file."""
-    from minority.sim.publish import RankPublisher
+    from minority.insitu.publisher import RankPublisher
 
     served = Spec.from_dict(spec_dict(every_steps=7))
     spec_file = tmp_path / "spec.json"
@@ -646,7 +646,7 @@ def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpo
 def test_a_record_write_error_is_counted_and_publishing_goes_on(tmp_path):
     """A full disk under the rank's record: the record ends there, what it missed is counted
     and said once, and the sender thread keeps going (it used to die, the outbox filling)."""
-    from minority.sim.publish import RankPublisher
+    from minority.insitu.publisher import RankPublisher
 
     log = io.StringIO()
     pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)),

@@ -8,9 +8,9 @@ import pytest
 from minority.protocol.errors import SpecError
 from minority.protocol.spec import Camera, Region, Spec, View, Window, inside_mask
 from minority.render_server.render import prepare, render
-from minority.sim.payload import cull
+from minority.insitu.payload import cull
 from minority.sim.state import ParticleState
-from minority.sim.visibility import visible_mask
+from minority.insitu.visibility import visible_mask
 
 SPACING = 0.01  # m
 RADIUS = 0.5 * SPACING

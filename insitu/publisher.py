@@ -92,8 +92,8 @@ from minority.protocol.messages import (
 from minority.protocol.session import NetworkOptions, QoS, Role, open_session, put
 from minority.protocol.spec import DataRequest, Spec, inside_mask, render_radius_m
 from minority.protocol.view import Window
-from minority.sim.context import DEFAULT_TOLERANCE_M, ContextSplit, ContextTracker
-from minority.sim.outbox import (
+from minority.insitu.context import DEFAULT_TOLERANCE_M, ContextSplit, ContextTracker
+from minority.insitu.outbox import (
     CHUNK,
     CONTROL,
     OUTBOX_BYTES,
@@ -103,8 +103,7 @@ from minority.sim.outbox import (
     Outbox,
     OutboxItem,
 )
-from minority.sim.payload import SIM_FIELDS, chunk_fields, cull_rows, flow_stats, scene_visible
-from minority.sim.state import ParticleState
+from minority.insitu.payload import SIM_FIELDS, chunk_fields, cull_rows, flow_stats, scene_visible
 
 SPEC_TIMEOUT_S = 5.0  # zenoh get of the spec: a live server answers in milliseconds
 SPEC_RETRY_S = 0.2  # s between spec queries while waiting for a starting server

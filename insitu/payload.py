@@ -18,8 +18,7 @@ import numpy as np
 from minority.protocol.fields import FIELDS, FieldInfo
 from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats
 from minority.protocol.spec import DataRequest, Region, inside_mask
-from minority.sim.state import ParticleState
-from minority.sim.visibility import visible_mask
+from minority.insitu.visibility import visible_mask
 
 # what the simulation can send: every field of the protocol's table (units, shapes)
 SIM_FIELDS: dict[str, FieldInfo] = dict(FIELDS)

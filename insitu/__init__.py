@@ -1,0 +1,1 @@
+"""In situ publishing: a simulation's particles to the render server (being moved from sim/)."""

@@ -14,6 +14,7 @@ change of that per frame (m/frame^2); frame = `frame_interval_s`.
 
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 from collections.abc import Iterable
@@ -147,13 +148,17 @@ def pack(items: Iterable[Packed], out_dir: str | Path, *, connectivity_radius_m:
     keys added. One dataset has one frame interval; particle spacings may differ by
     spacing_rtol (relative; the metadata records their median)."""
     log = sys.stderr if log is None else log  # the stream of the call, not of the import
+    items = iter(items)
+    first = next(items, None)  # a first run that cannot be read leaves nothing behind
+    if first is None:
+        raise DatasetError("no trajectories to pack")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {s: h5py.File(out / f"{s}.h5", "w") for s in SPLITS}
     scenes, train_pos, frame_dt, spacing, phis = [], [], set(), [], []
     bounds_hi = np.zeros(3)
     try:
-        for it in items:
+        for it in itertools.chain([first], items):
             pos = it.positions
             if it.split not in SPLITS:
                 raise DatasetError(f"{it.name}: split {it.split!r}, expected one of {SPLITS}")

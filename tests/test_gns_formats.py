@@ -309,3 +309,17 @@ def test_the_friction_angle_exported_in_degrees_or_not_at_all(dataset, tmp_path,
             import_npz(tmp_path / "npz", tmp_path / "back", material="none")
         meta = import_npz(tmp_path / "npz", tmp_path / "back", material="none", friction_deg=30.0)
         assert meta["friction_std_deg"] == 1.0  # one angle: the feature is 0, its scale 1
+
+
+def test_cli_refuses_runs_that_are_not_there_or_malformed(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["oracle", "dataset", "--from-runs", str(tmp_path / "none"), "-o", str(tmp_path / "ds")])
+    assert exit_.value.code == 2 and "no such file or directory" in capsys.readouterr().err
+    slide(tmp_path / "a.h5", 20.0)
+    with h5py.File(tmp_path / "a.h5", "a") as f:
+        del f.attrs["bounds_m"]
+    assert main(["oracle", "dataset", "--from-runs", str(tmp_path / "a.h5"), "--valid", "0",
+                 "--radius", "0.03", "-o", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "minority oracle dataset: error: " in err and "missing attr bounds_m" in err
+    assert not (tmp_path / "ds").exists()

@@ -92,10 +92,11 @@ def friction_of(run: RunTrajectory, path: Path, keep: np.ndarray,
     return float(phi[0])
 
 
-def to_packed(run: RunTrajectory, path: Path, split: str,
-              friction_deg: float | None = None) -> Packed:
+def to_packed(run: RunTrajectory, path: Path, split: str, friction_deg: float | None = None,
+              spacing_m: float | None = None) -> Packed:
     """A checked run as the dataset stores it: kinematic particles left out, one particle
-    type kept (the model has no type feature), one friction angle."""
+    type kept (the model has no type feature), one friction angle; spacing_m (m): the run's
+    spacing when it is known already (else its attr, else estimated)."""
     keep = run.particle_type != PARTICLE_TYPE_KINEMATIC
     types = np.unique(run.particle_type[keep]).tolist()
     if not types:
@@ -106,7 +107,7 @@ def to_packed(run: RunTrajectory, path: Path, split: str,
                            f"(kinematic type {PARTICLE_TYPE_KINEMATIC} aside)")
     pos = run.positions[:, keep] if not keep.all() else run.positions
     phi = friction_of(run, path, keep, friction_deg)
-    spacing = run.particle_spacing_m or estimate_spacing(pos[0])
+    spacing = run.particle_spacing_m or spacing_m or estimate_spacing(pos[0])
     return Packed(run.name, split, pos, phi, run.bounds_m, run.frame_interval_s, spacing,
                   particle_type=run.particle_type[keep],
                   scene={"source": str(path), "kinematic_left_out": int((~keep).sum()),
@@ -126,10 +127,12 @@ def build_from_runs(sources: Iterable[str | Path], out_dir: str | Path, *, strid
         raise DatasetError(f"stride {stride} must be >= 1")
     if connectivity_radius_m is not None and not connectivity_radius_m > 0:
         raise DatasetError(f"connectivity radius {connectivity_radius_m} m must be > 0")
+    spacings = {}
     if connectivity_radius_m is None:  # a first pass: the spacing decides the radius
-        spacings = [_spacing(p) for _, p in runs]
-        connectivity_radius_m = round(RADIUS_PER_SPACING * float(np.median(spacings)), 9)
-    items = (to_packed(read_trajectory(p, stride), p, s, friction_deg) for s, p in runs)
+        spacings = {p: _spacing(p) for _, p in runs}
+        connectivity_radius_m = round(RADIUS_PER_SPACING * float(np.median(list(spacings.values()))), 9)
+    items = (to_packed(read_trajectory(p, stride), p, s, friction_deg, spacings.get(p))
+             for s, p in runs)
     return pack(items, out_dir, connectivity_radius_m=connectivity_radius_m,
                 spacing_rtol=SPACING_RTOL, log=log,
                 meta={"config": "", "sources": [str(p) for _, p in runs]})

@@ -195,13 +195,25 @@ def load_scene(path: str | Path) -> Scene:
     """A scene from a TOML file of Scene's fields (top level; lists for the 3-vectors)."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        text = path.read_text()
+    except OSError as exc:
         raise ValueError(f"{path}: cannot read the scene: {exc}") from None
+    try:
+        return load_scene_text(text)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def load_scene_text(text: str) -> Scene:
+    """A scene from TOML text (Scene.to_toml's, or a file's)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"not a scene TOML: {exc}") from None
     known = {f.name for f in fields(Scene)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise ValueError(f"{path}: unknown scene keys {unknown} (known: {sorted(known)})")
+        raise ValueError(f"unknown scene keys {unknown} (known: {sorted(known)})")
     for key, value in data.items():
         if isinstance(value, list):
             data[key] = tuple(float(v) for v in value)
@@ -387,13 +399,22 @@ def _integrate(x, v, w, f, torque, inv_m, inv_i, g, dt):
 class Simulation:
     """A column collapse of `scene`: x, v [n, 3] (m, m/s), x0 the positions when the gate
     lifts, step count and time (s) from then. `pour()` fills the column behind the gate and
-    lifts it; `advance()` takes one time step."""
+    lifts it; `advance()` takes one time step. Given positions [n, 3] (m) and velocities
+    [n, 3] (m/s), it starts from those instead, in the open channel (no gate, no pour)."""
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, positions: np.ndarray | None = None,
+                 velocities: np.ndarray | None = None) -> None:
         self.scene = s = scene
-        self.x = pour_positions(s)
+        given = positions is not None
+        self.x = np.array(positions, np.float64) if given else pour_positions(s)
+        if self.x.ndim != 2 or self.x.shape[1] != 3:
+            raise ValueError(f"positions must be [n, 3] (m), got shape {self.x.shape}")
         self.x0 = self.x.copy()
-        self.v = np.zeros_like(self.x)
+        self.v = (np.array(velocities, np.float64) if velocities is not None
+                  else np.zeros_like(self.x))
+        if self.v.shape != self.x.shape:
+            raise ValueError(f"velocities must be [n, 3] like positions {self.x.shape}, got "
+                             f"{self.v.shape}")
         self.w = np.zeros_like(self.x)  # angular velocity [n, 3] (rad/s)
         self.n = n = len(self.x)
         self.ids = np.arange(n, dtype=np.int64)
@@ -403,7 +424,8 @@ class Simulation:
         self.inertia_kg_m2 = 0.1 * s.mass_kg * s.diameter_m ** 2  # solid sphere: 2/5 m r^2
         self.gravity = np.asarray(s.gravity_m_s2, dtype=np.float64)
         self.box = s.bounds_m
-        self.box[0, 1] = s.column_m[0]  # the gate: the end wall, at the column's front
+        if not given:
+            self.box[0, 1] = s.column_m[0]  # the gate: the end wall, at the column's front
         kn = s.stiffness_n_m
         kt = 2.0 / 7.0 * kn
         ln_e = math.log(s.restitution)

@@ -323,3 +323,29 @@ def test_cli_refuses_runs_that_are_not_there_or_malformed(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "minority oracle dataset: error: " in err and "missing attr bounds_m" in err
     assert not (tmp_path / "ds").exists()
+
+
+def test_training_a_few_steps_on_the_dem_examples_runs(tmp_path, capsys):
+    """examples/dem_column (a DEM, not our MPM) writes two small runs; they are packed with
+    `oracle dataset --from-runs`, and the GNS trains a few steps on them."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from minority.gns.model import ModelConfig
+    from minority.gns.train import TrainConfig, load_checkpoint, train
+
+    run_py = Path(__file__).resolve().parent.parent / "examples" / "dem_column" / "run.py"
+    for name, duration in (("dem_a", "0.1"), ("dem_b", "0.12")):
+        subprocess.run([sys.executable, str(run_py), "--particles", "300", "--duration",
+                        duration, "--no-publish", "--threads", "1", "--out",
+                        str(tmp_path / "runs" / f"{name}.h5")], check=True, timeout=600,
+                       capture_output=True)
+    assert main(["oracle", "dataset", "--from-runs", str(tmp_path / "runs"), "--valid", "1",
+                 "-o", str(tmp_path / "ds")]) == 0
+    meta = load_metadata(tmp_path / "ds")
+    assert [sc["split"] for sc in meta["scenes"]] == ["train", "valid"]
+    train(tmp_path / "ds", tmp_path / "m.pt", ModelConfig(latent=16, message_passing=2),
+          TrainConfig(steps=3, batch=2, val_every=3, val_frames=3, ckpt_every=3), device="cpu")
+    _, ckpt = load_checkpoint(tmp_path / "m.pt")
+    assert ckpt["step"] == 3 and ckpt["stats"]["frame_interval_s"] == meta["frame_interval_s"]

@@ -51,8 +51,8 @@ def bench_spec(every: int):
 
 def worker(args: argparse.Namespace) -> None:
     """One rank (under mpiexec): warm up, run, rank 0 prints the JSON result."""
-    from minority.protocol.session import NetworkOptions
     from minority.insitu.publisher import PublishOptions
+    from minority.protocol.session import NetworkOptions
     from minority.sim.ranks import RankRunConfig, run_ranks
     from minority.sim.scene import builtin_scene_path
     from mpi4py import MPI

@@ -5,7 +5,7 @@
 The column of each built-in scene at rest (or, with --h5, the frame of a `minority sim` run
 nearest --time), seen by the oracle's three cameras (side, top, aerial; 1024 x 768) fitted
 to the particles' extent as `minority oracle spec` fits them. `s` is the median time of
-sim.visibility.visible_mask over --reps calls (JIT compile excluded).
+insitu.visibility.visible_mask over --reps calls (JIT compile excluded).
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ import time
 import h5py
 import numpy as np
 from minority.gns.oracle import AERIAL_DIRECTION, fit_camera
+from minority.insitu.visibility import visible_mask
 from minority.protocol.spec import View
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import seed_particles
-from minority.insitu.visibility import visible_mask
 
 VIEWS = {"side": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "top": ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
          "aerial": (AERIAL_DIRECTION, (0.0, 0.0, 1.0))}

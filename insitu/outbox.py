@@ -1,6 +1,7 @@
 """The bounded queue between a rank's simulation thread and its sender thread
-(sim.publish): chunks, Stats messages and control messages (spec, events), each kind
-bounded on its own so that a slow server drops the oldest data, never blocks the simulation.
+(insitu.publisher, insitu.sender): chunks, Stats messages and control messages (spec,
+events), each kind bounded on its own so that a slow server drops the oldest data, never
+blocks the simulation.
 """
 
 from __future__ import annotations

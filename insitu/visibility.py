@@ -1,4 +1,4 @@
-"""Occlusion culling on the sim side: which particles a view's camera can see.
+"""Occlusion culling on the simulation's side: which particles a view's camera can see.
 
 A view with `occlusion_cull` is sent only the particles that may show in its image, so
 the bytes follow the visible surface, not the volume. The test is conservative (a

@@ -273,8 +273,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     try:
         publish = None
         if not args.no_publish:
-            from minority.protocol.session import options_from_args
             from minority.insitu.publisher import PublishOptions
+            from minority.protocol.session import options_from_args
 
             record = parent_made(args.record) if args.record else None
             try:

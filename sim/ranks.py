@@ -3,9 +3,11 @@ publishing to the render server, lifecycle events. What `minority sim` calls.
 
 Order on every rank: load the scene, build its slab (`sim.decomp.SlabSimulator`), open its
 zenoh session and fetch the spec (ranks check that they follow the same spec; rank 0's wins
-otherwise), `run_start` (rank 0), then per step: MPM step, then `RankPublisher.publish` at
-every step, step 0 included (a chunk if the spec schedules the step, a Stats message on the
-stats cadence; it keeps the previous step's time for `every_s` cadences); per output frame:
+otherwise), `run_start` (rank 0), then per step: MPM step, then minority.insitu's `due` at
+every step, step 0 included (it keeps the previous step's time for `every_s` cadences) and,
+when it says so, `publish` with the fields it wants built from the ParticleState
+(sim.publish: a chunk if the spec schedules the step, a Stats message on the stats
+cadence); per output frame:
 rank 0 gathers and writes. At the end each rank drains its outbox and publishes `rank_done`
 with its counts; rank 0 gathers the totals. An error on one rank that the others
 cannot see (e.g. a failed write) is published as an `error` event, then MPI_Abort ends the
@@ -21,7 +23,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
@@ -76,7 +78,7 @@ class RankRunConfig:
     threads: int | None = None  # numba threads per rank; None: cores / ranks on the node
     rebalance_every: int = DEFAULT_REBALANCE_EVERY  # steps; 0: never
     progress: bool = True
-    publish: object | None = None  # sim.publish.PublishOptions; None: no network, no record
+    publish: object | None = None  # insitu PublishOptions; None: no network, no record
     run: str | None = None  # run id of the keys minority/{run}/...; None: the scene name
     wait_s: float = 0.0  # keep trying to reach the server this long at start, s
     max_steps: int | None = None  # stop after this many steps (benchmarks, tests)
@@ -185,37 +187,32 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
 
 def _start_publishing(config, scene, sim, comm, log):
     """Connect, agree on the run id and the spec, start every rank's publisher (collective).
-    Returns (publisher or None, run, spec)."""
+    Returns (minority.insitu.InSitu or None, run, spec)."""
     if config.publish is None:
         return None, config.run, None
-    from minority.protocol.session import shm_pool_for
+    from minority.insitu import connect
     from minority.protocol.spec import Spec
-    from minority.insitu.payload import SIM_FIELDS, particle_bytes
-    from minority.insitu.publisher import RankPublisher
 
     rank, ranks = comm.Get_rank(), comm.Get_size()
-    bounds = ((0.0, 0.0, 0.0), tuple(float(s) for s in scene.size_m))
-    # shared memory for the largest chunk this rank could send: every particle, every field
-    largest = sim.n_total * particle_bytes(SIM_FIELDS)
-    options = replace(config.publish, network=replace(config.publish.network,
-                                                      shm_pool_bytes=shm_pool_for(largest)))
-    pub = RankPublisher(rank, ranks, scene.particle_spacing_m, bounds, options, log)
-    pub.connect(config.wait_s)
+    opts = config.publish
+
+    def agree(spec, error):  # collective: one error stops every rank, rank 0's spec wins
+        errors = comm.allgather(None if error is None else str(error))
+        if any(errors):
+            raise ValueError(next(e for e in errors if e))
+        digests = comm.allgather(_spec_digest(spec))
+        if len(set(digests)) > 1:  # e.g. the spec changed between the ranks' gets
+            d = comm.bcast(spec.to_dict() if spec is not None else None, root=0)
+            spec = Spec.from_dict(d) if d is not None else None
+        return spec
+
     run = config.run or scene.name
-    try:
-        spec = pub.fetch_spec(run, config.wait_s)
-        error = None
-    except Exception as exc:  # a bad spec file: every rank reads the same one
-        spec, error = None, exc
-    errors = comm.allgather(None if error is None else str(error))
-    if any(errors):
-        pub.close()
-        raise ValueError(next(e for e in errors if e))
-    digests = comm.allgather(_spec_digest(spec))
-    if len(set(digests)) > 1:  # e.g. the spec changed between the ranks' gets
-        d = comm.bcast(spec.to_dict() if spec is not None else None, root=0)
-        spec = Spec.from_dict(d) if d is not None else None
-    reasons = comm.gather(pub.no_server_reason, root=0)
+    # shared memory for the largest chunk this rank could send: every particle, every field
+    viz = connect(run, rank, ranks, connect=tuple(opts.network.connect), record=opts.record,
+                  spec=opts.spec_file, wait_s=config.wait_s, particles=sim.n_total,
+                  options=opts, agree=agree, log=log, report=False)
+    spec = viz.spec
+    reasons = comm.gather(viz.no_server_reason, root=0)
     if rank == 0:
         missing = [r for r, why in enumerate(reasons) if why]
         if missing:
@@ -231,8 +228,18 @@ def _start_publishing(config, scene, sim, comm, log):
             print(f"minority sim: run {run!r}, spec version {spec.version}: "
                   f"{len(spec.views)} view(s), fields {', '.join(spec.fields)}, regions "
                   f"{regions}", file=log, flush=True)
-    pub.start(run, spec)
-    return pub, run, spec
+    return viz, run, spec
+
+
+def _publish_step(viz, sim, spacing_m: float, bounds_m) -> None:
+    """Ask the publisher whether this step is due; if so, build the fields it wants from the
+    particles and hand them over."""
+    from minority.sim.publish import sim_fields
+
+    if viz.due(sim.step_count, sim.time_s):
+        ps = sim.particles
+        viz.publish(sim.step_count, sim.time_s, ps.x, fields=sim_fields(ps, viz.wanted),
+                    ids=ps.pid, spacing_m=spacing_m, bounds_m=bounds_m)
 
 
 def _step_loop(sim, config, frames, writer, publisher, say) -> int:
@@ -240,8 +247,10 @@ def _step_loop(sim, config, frames, writer, publisher, say) -> int:
     publisher, which needs each step's time as the next one's prev_time_s. Returns frames
     written."""
     n_total = sim.n_total
+    scene = sim.scene
+    spacing, bounds = scene.particle_spacing_m, ((0.0, 0.0, 0.0), tuple(map(float, scene.size_m)))
     if publisher is not None:
-        publisher.publish(sim.step_count, sim.time_s, sim.particles)
+        _publish_step(publisher, sim, spacing, bounds)
     last_print = time.perf_counter()
     start = last_print
     written = 0
@@ -251,7 +260,7 @@ def _step_loop(sim, config, frames, writer, publisher, say) -> int:
                 return written
             sim.advance_to(t_frame, max_steps=1)
             if publisher is not None:
-                publisher.publish(sim.step_count, sim.time_s, sim.particles)
+                _publish_step(publisher, sim, spacing, bounds)
             now = time.perf_counter()
             if now - last_print > PROGRESS_EVERY_S:
                 say(_progress(sim, n_total, now - start))
@@ -275,12 +284,8 @@ def _progress(sim, n_total: int, wall_s: float) -> str:
 
 
 def _fail(publisher, exc: BaseException, rank: int) -> None:
-    if publisher is None:
-        return
-    publisher.event(EventKind.ERROR, f"rank {rank}: {type(exc).__name__}: {exc}",
-                    {"error": type(exc).__name__})
-    publisher.options.drain_timeout_s = min(publisher.options.drain_timeout_s, 1.0)
-    publisher.close({"error": str(exc)[:1000]})
+    if publisher is not None:
+        publisher.fail(exc)  # an error event, then close
 
 
 def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, say):

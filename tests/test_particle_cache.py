@@ -1,18 +1,18 @@
 """Complete pictures under region culling: context rows on the wire (protocol), what a rank
-sends (sim.context), the server's cache (render_server.particles), end to end."""
+sends (insitu.context), the server's cache (render_server.particles), end to end."""
 
 import io
 
 import numpy as np
 import pytest
 from conftest import make_chunk
+from minority.insitu.context import ContextTracker
 from minority.protocol import Chunk, ProtocolError, Spec, Timing, decode_as, keys
 from minority.protocol.session import Inbox
 from minority.protocol.spec import inside_mask
 from minority.render_server.assemble import StepAssembler
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.particles import ParticleCache, complete_step
-from minority.insitu.context import ContextTracker
 from minority.sim.ranks import run_ranks
 from test_loopback import wait_until
 from test_sim_publish import RUN, config, spec_dict

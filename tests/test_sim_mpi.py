@@ -17,12 +17,12 @@ import h5py
 import numpy as np
 import pytest
 from conftest import free_port
+from minority.insitu.publisher import STATS_EVERY_S
 from minority.protocol.log import read_log
 from minority.protocol.messages import speed_histogram
 from minority.protocol.view import Window
 from minority.sim.decomp import DEFAULT_REBALANCE_EVERY, balanced_starts
 from minority.sim.driver import Simulator
-from minority.insitu.publisher import STATS_EVERY_S
 from minority.sim.runner import run_scene
 from minority.sim.scene import load_scene
 

@@ -18,6 +18,9 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import fail_call, free_port
+from minority.insitu.outbox import CONTROL, STATS, Outbox, OutboxItem
+from minority.insitu.payload import cull, flow_stats, particle_bytes, speed_bins
+from minority.insitu.publisher import PublishOptions, record_path
 from minority.protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
 from minority.protocol.log import LogTruncatedWarning, read_log
 from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, speed_histogram
@@ -27,9 +30,7 @@ from minority.protocol.view import Window
 from minority.protocol.wire import decode
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.sim.driver import Simulator
-from minority.insitu.outbox import CONTROL, STATS, Outbox, OutboxItem
-from minority.insitu.payload import SIM_FIELDS, cull, flow_stats, particle_bytes, speed_bins
-from minority.insitu.publisher import PublishOptions, record_path
+from minority.sim.publish import SIM_FIELDS, sim_particles
 from minority.sim.ranks import RankRunConfig, run_ranks
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import PARTICLE_FIELDS, seed_particles
@@ -65,7 +66,7 @@ def moved_particles():
 def test_cull_keeps_the_particles_in_the_regions_and_the_requested_fields_only():
     ps = moved_particles()
     box = Region("front", (0.05, -1.0, -1.0), (1.0, 1.0, 1.0))
-    fields = cull(ps, DataRequest(("side",), ("displacement", "velocity_magnitude"), (box,)))
+    fields = cull(sim_particles(ps), DataRequest(("side",), ("displacement", "velocity_magnitude"), (box,)))
     assert list(fields) == ["positions", "displacement", "velocity_magnitude"]
     expected = np.flatnonzero(ps.x[:, 0] >= 0.05)
     assert 0 < expected.size < ps.n
@@ -73,9 +74,9 @@ def test_cull_keeps_the_particles_in_the_regions_and_the_requested_fields_only()
     assert np.array_equal(fields["displacement"], (ps.x - ps.x0)[expected].astype(np.float32))
     np.testing.assert_allclose(fields["velocity_magnitude"],
                                np.linalg.norm(ps.v[expected], axis=1), rtol=1e-6)
-    everything = cull(ps, DataRequest(("side",), ("id", "pressure"), None))
+    everything = cull(sim_particles(ps), DataRequest(("side",), ("id", "pressure"), None))
     assert np.array_equal(everything["id"], ps.pid) and everything["pressure"].shape == (ps.n,)
-    assert set(cull(ps, DataRequest(("v",), ("no_such_field",), None))) == {"positions"}
+    assert set(cull(sim_particles(ps), DataRequest(("v",), ("no_such_field",), None))) == {"positions"}
 
 
 def test_culling_reduces_the_bytes_as_predicted():
@@ -87,7 +88,7 @@ def test_culling_reduces_the_bytes_as_predicted():
 
     def encoded(request):
         payload = Chunk(RUN, 0, 0.0, 0, 1, 0.005, ((0, 0, 0), (1, 1, 1)),
-                        cull(ps, request)).encode()
+                        cull(sim_particles(ps), request)).encode()
         return len(payload), sum(a.nbytes for a in decode(payload).arrays.values())
 
     full, full_arrays = encoded(DataRequest(("v",), ("displacement", "velocity"), None))
@@ -290,7 +291,7 @@ def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_co
     bound), step 3 and step 4 (not put while stalled) are dropped_stalled; the server
     answers the probe again and step 5 is sent and confirmed. `sent` never exceeds what the
     subscriber received."""
-    from minority.insitu import publisher as publish
+    from minority.insitu import publisher, sender
 
     spec = Spec.from_dict(spec_dict(every_steps=1))
     answering = threading.Event()
@@ -305,39 +306,38 @@ def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_co
     chunks, events = Inbox(observer, keys.chunks(RUN)), Inbox(observer, keys.event(RUN))
     wait_for_subscriber(server, keys.chunks(RUN))
     offset_s = [0.0]  # added to the publisher's clock
-    real_put, given_up = publish.put, keys.chunk(RUN, 3, 0)
+    real_put, given_up = sender.put, keys.chunk(RUN, 3, 0)
 
     def put(session, key, payload, qos):
         if key == given_up:  # the put zenoh gives up after the block timeout: not delivered
-            offset_s[0] += publish.BLOCK_TIMEOUT_S
+            offset_s[0] += sender.BLOCK_TIMEOUT_S
             return
         real_put(session, key, payload, qos)
 
-    monkeypatch.setattr(publish, "put", put)
+    monkeypatch.setattr(sender, "put", put)
     log = io.StringIO()
-    pub = publish.RankPublisher(
-        0, 1, 0.005, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
-        PublishOptions(network=NetworkOptions(connect=[endpoint]), stats_every_s=0.0), log,
+    pub = publisher.RankPublisher(
+        0, 1, PublishOptions(network=NetworkOptions(connect=[endpoint]), stats_every_s=0.0), log,
         clock=lambda: time.monotonic() + offset_s[0])
-    ps = moved_particles()
+    args = (sim_particles(moved_particles()), 0.005, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
     try:
         assert pub.connect(5.0)
         pub.start(RUN, spec)
-        pub.publish(0, 0.0, ps)
+        pub.publish(0, 0.0, *args)
         assert wait_until(lambda: pub.stats.sent_confirmed == 1)
         answering.clear()
         for step in (1, 2):
-            pub.publish(step, step * 1e-4, ps)
+            pub.publish(step, step * 1e-4, *args)
         assert wait_until(lambda: chunks.received == 3 and pub.stats.sent == 3)
-        pub.publish(3, 3e-4, ps)
+        pub.publish(3, 3e-4, *args)
         assert wait_until(lambda: pub.stats.stalls == 1)
-        pub.publish(4, 4e-4, ps)  # stalled, no probe due (or one not answered): not put
+        pub.publish(4, 4e-4, *args)  # stalled, no probe due (or one not answered): not put
         assert wait_until(lambda: pub.stats.dropped_stalled == 2)
         s = pub.stats
         assert (s.sent, s.sent_confirmed, s.dropped_before_stall) == (1, 1, 2)
         answering.set()
-        offset_s[0] += publish.PROBE_INTERVAL_S  # a probe is due: answered, the link flows
-        pub.publish(5, 5e-4, ps)
+        offset_s[0] += sender.PROBE_INTERVAL_S  # a probe is due: answered, the link flows
+        pub.publish(5, 5e-4, *args)
         assert wait_until(lambda: chunks.received == 4 and pub.stats.sent_confirmed == 2)
     finally:
         stats = pub.close()
@@ -359,7 +359,7 @@ def test_chunks_put_since_the_last_confirmation_count_as_dropped_when_a_stall_co
 @pytest.mark.parametrize("name", sorted(SIM_FIELDS))
 def test_every_field_the_sim_offers_has_the_declared_shape(name):
     ps = moved_particles()
-    a = cull(ps, DataRequest(("v",), (name,), None))[name]
+    a = cull(sim_particles(ps), DataRequest(("v",), (name,), None))[name]
     f = SIM_FIELDS[name]
     assert a.shape == ((ps.n,) if f.components == 1 else (ps.n, f.components))
     assert a.dtype == np.dtype(f.dtype)
@@ -413,7 +413,7 @@ def view(name: str, decimate: int, *windows: dict) -> dict:
 def test_cull_keeps_every_nth_particle_by_original_id_after_the_region_test():
     ps = shuffled_particles()
     for regions in ((FRONT_BOX,), None):
-        fields = cull(ps, DataRequest(("side",), ("id", "velocity"), regions, decimate=3))
+        fields = cull(sim_particles(ps), DataRequest(("side",), ("id", "velocity"), regions, decimate=3))
         keep = ps.pid % 3 == 0
         if regions is not None:
             keep &= in_box(ps.x, FRONT_BOX)
@@ -421,7 +421,7 @@ def test_cull_keeps_every_nth_particle_by_original_id_after_the_region_test():
         assert np.array_equal(fields["id"], ps.pid[keep])
         assert np.array_equal(fields["positions"], ps.x[keep].astype(np.float32))
         assert np.array_equal(fields["velocity"], ps.v[keep].astype(np.float32))
-    plain = cull(ps, DataRequest(("side",), ("displacement",), None, decimate=3))
+    plain = cull(sim_particles(ps), DataRequest(("side",), ("displacement",), None, decimate=3))
     assert set(plain) == {"positions", "displacement"}
     assert plain["positions"].shape[0] == np.count_nonzero(ps.pid % 3 == 0)
 
@@ -432,13 +432,13 @@ def test_views_that_decimate_differently_get_the_common_stride_with_ids():
         view("a", 2, {"every_steps": 1}), view("b", 4, {"every_steps": 2})]})
     both = spec.request(2, 0.001, 0.0005)
     assert both.decimate == 2 and "id" in both.fields
-    fields = cull(ps, both)
+    fields = cull(sim_particles(ps), both)
     ids = fields["id"]
     assert np.array_equal(np.sort(ids), np.arange(0, ps.n, 2))  # every even id, once
     b = fields["positions"][ids % 4 == 0]  # what the server keeps for view b
     assert np.array_equal(sorted_rows(b), sorted_rows(ps.x[ps.pid % 4 == 0].astype(np.float32)))
     alone = spec.request(1, 0.0005, 0.0)  # view a only: its stride, no ids needed
-    assert alone.decimate == 2 and "id" not in alone.fields and "id" not in cull(ps, alone)
+    assert alone.decimate == 2 and "id" not in alone.fields and "id" not in cull(sim_particles(ps), alone)
 
 
 def test_speed_bins_equal_a_search_of_the_edges():
@@ -458,7 +458,7 @@ def test_flow_stats_match_a_hand_computation():
     assert 0 < front.sum() < ps.n
     everyone, no_one = np.ones(ps.n, bool), np.zeros(ps.n, bool)
     for regions, inside in (((FRONT_BOX,), front), (None, everyone), ((), no_one)):
-        st = flow_stats(RUN, 1, 7, 0.0125, ps, regions)
+        st = flow_stats(RUN, 1, 7, 0.0125, sim_particles(ps), regions)
         assert (st.rank, st.step, st.time_s, st.count) == (1, 7, 0.0125, ps.n)
         assert st.windows_open == (regions != ())
         assert st.hist_in_regions == speed_histogram(speed[inside])
@@ -470,7 +470,7 @@ def test_flow_stats_match_a_hand_computation():
         again = decode_as(st.encode(), Stats)  # decoding checks that the histograms add up
         assert again == msgspec.structs.replace(st, sent_ns=again.sent_ns)
     empty = dataclasses.replace(ps, **{name: getattr(ps, name)[:0] for name in PARTICLE_FIELDS})
-    st = flow_stats(RUN, 0, 0, 0.0, empty, (FRONT_BOX,))
+    st = flow_stats(RUN, 0, 0, 0.0, sim_particles(empty), (FRONT_BOX,))
     assert (st.count, st.max_speed_m_s, st.max_displacement_m) == (0, 0.0, 0.0)
     assert st.hist_in_regions == st.hist_elsewhere == [0] * SPEED_BINS
     decode_as(st.encode(), Stats)
@@ -632,7 +632,7 @@ def test_a_rank_asks_again_for_the_spec_of_a_server_still_starting(server, endpo
         asked.set()
 
     ready.append(server.declare_queryable(keys.spec(RUN), on_query))
-    pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)), PublishOptions(
+    pub = RankPublisher(0, 1, PublishOptions(
         network=NetworkOptions(connect=[endpoint]), spec_file=spec_file), io.StringIO())
     try:
         assert pub.connect(5.0)
@@ -649,8 +649,7 @@ def test_a_record_write_error_is_counted_and_publishing_goes_on(tmp_path):
     from minority.insitu.publisher import RankPublisher
 
     log = io.StringIO()
-    pub = RankPublisher(0, 1, 0.01, ((0, 0, 0), (1, 1, 1)),
-                        PublishOptions(record=tmp_path / "sim.mcap"), log)
+    pub = RankPublisher(0, 1, PublishOptions(record=tmp_path / "sim.mcap"), log)
     pub.start(RUN, Spec.from_dict(spec_dict(every_steps=1)))
     assert pub._outbox.wait_empty(5.0)  # the spec it follows is recorded
     pub._writer.write_payload, calls = fail_call(pub._writer.write_payload, 2,

@@ -1,16 +1,15 @@
-"""Occlusion culling (sim.visibility): the particles dropped never show.
+"""Occlusion culling (insitu.visibility): the particles dropped never show.
 
 Each case renders a dense, jittered block of spheres with every particle and with only the
 kept ones, through the server's own ray caster, and requires identical pixels."""
 
 import numpy as np
 import pytest
+from minority.insitu.payload import Particles, cull
+from minority.insitu.visibility import visible_mask
 from minority.protocol.errors import SpecError
 from minority.protocol.spec import Camera, Region, Spec, View, Window, inside_mask
 from minority.render_server.render import prepare, render
-from minority.insitu.payload import cull
-from minority.sim.state import ParticleState
-from minority.insitu.visibility import visible_mask
 
 SPACING = 0.01  # m
 RADIUS = 0.5 * SPACING
@@ -85,10 +84,8 @@ def test_spec_occlusion_cull_round_trip_validation_and_request():
 
 def _particles(pos):
     n = len(pos)
-    eye = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
-    return ParticleState(x=pos.copy(), v=np.zeros((n, 3)), C=np.zeros((n, 3, 3)), F=eye,
-                         tau=np.zeros((n, 3, 3)), mass=np.ones(n), vol0=np.ones(n),
-                         x0=pos + 0.001, pid=np.arange(n))
+    return Particles(pos.copy(), np.arange(n), {"velocity": np.zeros((n, 3)),
+                                                 "displacement": np.full((n, 3), -0.001)})
 
 
 @pytest.mark.parametrize("decimate", [1, 2])

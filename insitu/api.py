@@ -214,6 +214,11 @@ class InSitu:
         return self._pub.publish(step, time_s, Particles(positions, ids, given), float(spacing_m),
                                  bounds_m)
 
+    def wait_sent(self, timeout_s: float) -> bool:
+        """Wait until everything queued has left the outbox (at most timeout_s); whether it
+        did. For tests and benchmarks: a simulation never needs to wait."""
+        return self._pub._outbox.wait_empty(timeout_s)
+
     def event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
         """Publish a lifecycle event (e.g. run_start from rank 0) behind what was queued."""
         self._pub.event(kind, message, detail)

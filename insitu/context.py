@@ -42,6 +42,7 @@ class ContextTracker:
         self.tolerance_m = tolerance_m
         self._sent = np.full((0, 3), np.nan, dtype=np.float32)  # [ids, 3] m, NaN: not cached
         self._reset = True
+        self._cached = 0  # ids whose row of _sent is not NaN
         self.context_rows = 0  # rows sent as context so far
         self.evicted = 0
         self.resets = 0
@@ -58,7 +59,10 @@ class ContextTracker:
         reset, self._reset = self._reset, False
         if reset:
             self._sent[:] = np.nan
+            self._cached = 0
             self.resets += 1
+        if not self._cached and not outside.any():  # nothing cached, nothing to cache
+            return ContextSplit(np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.int64), reset)
         top = int(pid.max()) + 1 if len(pid) else 0
         if top > len(self._sent):
             grown = np.full((max(top, 2 * len(self._sent)), 3), np.nan, dtype=np.float32)
@@ -75,7 +79,8 @@ class ContextTracker:
         self._sent[evict] = np.nan
         rows = np.flatnonzero(outside)
         last = self._sent[pid[rows]]  # [m, 3], NaN where not cached
-        moved = np.isnan(last[:, 0])
+        new = np.isnan(last[:, 0])  # not cached: sent whatever their position
+        moved = new.copy()
         if self.tolerance_m > 0.0:
             d2 = np.einsum("ij,ij->i", x[rows] - last, x[rows] - last)
             moved |= d2 > self.tolerance_m ** 2
@@ -83,6 +88,7 @@ class ContextTracker:
             moved |= np.any(x[rows] != last, axis=1)
         rows = rows[moved]
         self._sent[pid[rows]] = x[rows]
+        self._cached += int(new.sum()) - len(evict)
         self.context_rows += len(rows)
         self.evicted += len(evict)
         return ContextSplit(rows, evict, reset)

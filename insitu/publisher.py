@@ -382,6 +382,8 @@ class RankPublisher(Sender):
                 fresh, outside = keep & inside, keep & ~inside
             context = self._split_context(p, outside)
             rows = np.concatenate([np.flatnonzero(fresh), context.rows])
+            if len(rows) == p.n and not len(context.rows):  # every row, in order: no copy
+                rows = None
         chunk = Chunk(self.run, step, time_s, self.rank, self.ranks, spacing_m, bounds_m,
                       chunk_fields(p, rows, request.fields), prev_time_s=prev)
         if context is not None:

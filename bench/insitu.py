@@ -1,0 +1,216 @@
+"""The in situ API's cost to the simulation's thread: one JSON line per particle count.
+
+    python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--mpm-steps S] [--threads T]
+
+{"bench": "insitu", "particles", "due_publish_s", "due_publish_cpu_s", "chunk_bytes",
+ "chunk_s", "stats_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
+ "due_publish_over_mpm_step", "threads", "scene"}
+
+The particles are our column scene's (column_13k, column_100k, column_1m), seeded and
+stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT excluded):
+* mpm_step_s: the median wall time of one MPM step at that size (the CFL step);
+* due_publish_s: the median wall time of `viz.due` + building the wanted fields from the
+  ParticleState + `viz.publish` at a due step, against a live RenderServer in this process
+  on loopback (a 320x240 view of every particle every step, coloured by displacement, plus
+  Stats at every due step: the worst case), the caller's thread only (the sender thread and
+  the server run beside it, on the same cores); due_publish_cpu_s the same in the caller's
+  thread CPU time; chunk_s and stats_s its two parts (PublishStats.prepare_s per chunk,
+  stats_s per Stats message), chunk_bytes the chunk's size;
+* idle_due_s: `viz.due` at a step nothing is due (the cost at most steps);
+* full_outbox_publish_s: the median of the same call when the outbox is full, against a
+  server that stopped reading (its chunk callback never returns; shared memory off so the
+  link fills): the chunk is still culled and encoded, then the oldest queued one dropped.
+Targets (issue 26): due_publish_s <= 2 % of mpm_step_s; full_outbox_publish_s <= 1 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import statistics
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numba
+from minority.insitu import PublishOptions, connect
+from minority.protocol import Spec, keys
+from minority.protocol.session import NetworkOptions, Role, open_session
+from minority.render_server.daemon import RenderServer, ServerOptions
+from minority.sim.driver import Simulator
+from minority.sim.publish import sim_fields
+from minority.sim.scene import builtin_scene_path, load_scene
+
+RUN = "bench-insitu"
+SIZES = {"13k": "column_13k", "100k": "column_100k", "1m": "column_1m"}
+CALLS = 20  # timed due + publish calls per size
+WARMUP_CALLS = 3  # shared-memory pool, page mapping, numba (visibility) warm up
+WARMUP_STEPS = 2
+FULL_MAX_CALLS = 2000  # publishes at most until the outbox overflows
+CLIENT_STALLED = """{
+  mode: "client",
+  scouting: { multicast: { enabled: false }, gossip: { enabled: false } },
+  transport: { shared_memory: { enabled: false }, link: { tcp: { so_sndbuf: 65536 } } },
+}
+"""
+SERVER_STALLED = ('{ mode: "peer", scouting: { multicast: { enabled: false } }, '
+                  'transport: { link: { tcp: { so_rcvbuf: 65536 } } } }')
+
+
+def spec(size_m) -> Spec:
+    lx, ly, lz = size_m
+    return Spec.from_dict({"version": 2, "run": RUN, "views": [{
+        "name": "aerial", "camera": {"position": [1.5 * lx, -1.2 * lx, 0.9 * lx],
+                                     "focal_point": [0.4 * lx, 0.5 * ly, 0.1 * lz],
+                                     "view_up": [0, 0, 1], "view_angle_deg": 30},
+        "width": 320, "height": 240, "field": "displacement", "range": [0.0, 0.3],
+        "schedule": [{"every_steps": 1}]}]})
+
+
+def mpm_step_s(sim: Simulator, steps: int) -> float:
+    for _ in range(WARMUP_STEPS):
+        sim.step(sim.stable_dt())
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        sim.step(sim.stable_dt())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def step_once(viz, sim, step: int, time_s: float, spacing: float, bounds) -> tuple[float, float]:
+    """One due step as sim.ranks makes it: (wall s, thread CPU s) of the caller."""
+    c0, t0 = time.thread_time(), time.perf_counter()
+    if viz.due(step, time_s):
+        ps = sim.particles
+        viz.publish(step, time_s, ps.x, fields=sim_fields(ps, viz.wanted), ids=ps.pid,
+                    spacing_m=spacing, bounds_m=bounds)
+    return time.perf_counter() - t0, time.thread_time() - c0
+
+
+def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
+    scene = load_scene(builtin_scene_path(name))
+    sim = Simulator(scene, threads=threads)
+    step_s = mpm_step_s(sim, mpm_steps)
+    n = sim.particles.n
+    spacing = scene.particle_spacing_m
+    bounds = ((0.0, 0.0, 0.0), tuple(map(float, scene.size_m)))
+    the_spec = spec(scene.size_m)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)
+    with tempfile.TemporaryDirectory() as tmp:
+        server = RenderServer(session, ServerOptions(the_spec, Path(tmp), None, write_png=False))
+        try:
+            options = PublishOptions(stats_every_s=1e-9)  # Stats at every step: the worst case
+            with connect(RUN, connect=(endpoint,), wait_s=10.0, particles=n,
+                         options=options) as viz:
+                wall, cpu = [], []
+                for k in range(WARMUP_CALLS + calls):
+                    w, c = step_once(viz, sim, k, k * 1e-5, spacing, bounds)
+                    if k >= WARMUP_CALLS:
+                        wall.append(w)
+                        cpu.append(c)
+                    viz.wait_sent(60.0)  # one chunk at a time: never a drop
+                st = viz.stats
+                chunk_bytes = st.bytes_sent // max(st.sent, 1)
+                chunk_s = st.prepare_s / max(st.scheduled, 1)  # cull, encode, queue a chunk
+                stats_s = st.stats_s / max(st.stats_due, 1)  # compute, encode, queue Stats
+            idle = idle_due_s(n)
+        finally:
+            server.close()
+            session.close()
+    full = full_outbox(sim, the_spec, calls, spacing, bounds)
+    due_publish = statistics.median(wall)
+    return {"bench": "insitu", "particles": n, "due_publish_s": round(due_publish, 6),
+            "due_publish_cpu_s": round(statistics.median(cpu), 6), "chunk_bytes": chunk_bytes,
+            "chunk_s": round(chunk_s, 6), "stats_s": round(stats_s, 6),
+            "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
+            "mpm_step_s": round(step_s, 6),
+            "due_publish_over_mpm_step": round(due_publish / step_s, 4),
+            "threads": numba.get_num_threads(), "scene": name}
+
+
+def idle_due_s(n: int, calls: int = 10_000) -> float:
+    """`due` at steps nothing is due (a spec whose one window opens at t = 1 s), per call."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "spec.json"
+        d = spec((1.0, 1.0, 1.0)).to_dict()
+        d["views"][0]["schedule"] = [{"t_start_s": 1.0, "every_steps": 1}]
+        path.write_text(json.dumps(d))
+        with connect(RUN, connect=(f"tcp/127.0.0.1:{_free_port()}",), spec=path,
+                     record=Path(tmp) / "r.mcap", options=PublishOptions(stats_every_s=0.0),
+                     log=io.StringIO()) as viz:
+            t0 = time.perf_counter()
+            for k in range(calls):
+                viz.due(k, k * 1e-6)
+            return (time.perf_counter() - t0) / calls
+
+
+def full_outbox(sim, the_spec, calls: int, spacing, bounds) -> float:
+    """Median caller time of a due step once the outbox has overflowed (a server whose
+    chunk callback never returns)."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "server.json5").write_text(SERVER_STALLED)
+        (Path(tmp) / "client.json5").write_text(CLIENT_STALLED)
+        session = open_session(NetworkOptions(listen=[endpoint], config=Path(tmp) / "server.json5"),
+                               Role.SERVER)
+        gate = threading.Event()
+        queryable = session.declare_queryable(keys.spec(RUN), lambda q: q.reply(
+            keys.spec(RUN), bytes(the_spec.encode())))
+        stuck = session.declare_subscriber(keys.chunks(RUN), lambda s: gate.wait())
+        options = PublishOptions(network=NetworkOptions(config=Path(tmp) / "client.json5"),
+                                 stats_every_s=0.0, drain_timeout_s=0.5)
+        try:
+            viz = connect(RUN, connect=(endpoint,), wait_s=10.0, options=options,
+                          log=io.StringIO())
+            k = 0
+            while viz.stats.dropped_outbox == 0 and k < FULL_MAX_CALLS:
+                step_once(viz, sim, k, k * 1e-5, spacing, bounds)
+                k += 1
+            if viz.stats.dropped_outbox == 0:
+                raise RuntimeError(f"the outbox never overflowed in {k} calls")
+            times = []
+            for j in range(k, k + calls):
+                times.append(step_once(viz, sim, j, j * 1e-5, spacing, bounds)[0])
+            viz.close()
+        finally:
+            gate.set()
+            stuck.undeclare()
+            queryable.undeclare()
+            session.close()
+    return statistics.median(times)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="13k,100k,1m",
+                        help="comma-separated, of 13k, 100k, 1m (default: all three; 1m takes "
+                             "minutes)")
+    parser.add_argument("--calls", type=int, default=CALLS,
+                        help=f"timed due + publish calls per size (default {CALLS})")
+    parser.add_argument("--mpm-steps", type=int, default=5,
+                        help="timed MPM steps per size (default 5)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="numba threads of the MPM (default: numba's)")
+    args = parser.parse_args()
+    for size in args.sizes.split(","):
+        if size not in SIZES:
+            parser.error(f"--sizes: unknown size {size!r} (known: {', '.join(SIZES)})")
+    for size in args.sizes.split(","):
+        print(json.dumps(measure(SIZES[size], args.calls, args.mpm_steps, args.threads)),
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -65,8 +65,8 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
     """Start a server (pinned to its core), run the sim publishing to it, wait for the
     server to render the last step and exit; returns the sim's stepping wall time (s) and
     its publishing summary."""
+    from minority.insitu.publisher import PublishOptions
     from minority.protocol.session import NetworkOptions
-    from minority.sim.publish import PublishOptions
 
     from minority.demo import free_port
 

@@ -21,7 +21,7 @@ from minority.cliargs import BAD_INPUT, FAILED, HelpFormatter, add_out, command,
 DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not imported here)
 # packages whose numba kernels are cached on disk (cache=True): their stale caches are dropped
 # before a command that runs kernels (protocol.jitcache), never at import time
-NUMBA_PACKAGES = ("minority.sim", "minority.gns", "minority.render_server")
+NUMBA_PACKAGES = ("minority.sim", "minority.insitu", "minority.gns", "minority.render_server")
 NO_MPI = ("no MPI library: install the mpich wheel (pip install 'minority[mpi]', what `make` "
           "does) or mpi4py built against your system's MPI (README.md, 'A cluster's own MPI')")
 

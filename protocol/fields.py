@@ -1,6 +1,6 @@
 """The particle fields a chunk may carry: name -> unit, components and meaning.
 
-One table for both sides of the wire: the simulation says what it can send (sim.payload),
+One table for both sides of the wire: the simulation says what it can send (sim.publish),
 the render server labels a view's colorbar with the field's unit. A view colours a vector
 field ([n, k], k > 1) by its magnitude, so the colorbar of `displacement` reads
 "displacement magnitude (m)".

@@ -2,7 +2,7 @@
 
 The one home of the projection rules that both sides of the wire apply to a spec's camera:
 the render server (render_server.camera builds its pixel rays from `camera_basis` and
-`half_extents`), the sim (sim.visibility projects particles with `camera_coordinates`,
+`half_extents`), the ranks (insitu.visibility projects particles with `camera_coordinates`,
 `to_pixels` and `in_frame` to leave out what no view sees) and the oracle
 (gns.oracle.fit_camera frames a box with `orthonormal_frame` and `view_tangent`).
 

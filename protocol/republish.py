@@ -17,7 +17,7 @@ from minority.protocol.messages import Chunk
 from minority.protocol.runlog import RunLogError, log_run, log_specs
 from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
 
-# The simulation's sender QoS (sim.publish.SENDER_QOS: block, data priority), not imported:
+# The simulation's sender QoS (insitu.publisher.SENDER_QOS: block, data priority), not imported:
 # protocol imports no other package; tests check that the two agree.
 REPLAY_QOS = LOSSLESS_QOS
 

@@ -118,7 +118,7 @@ class RenderServer:
         self.options = options
         self.spec = options.spec
         self.run = options.spec.run
-        self._spec_payload = bytes(self.spec.encode())  # ranks ask ~10 times/s (sim.publish)
+        self._spec_payload = bytes(self.spec.encode())  # ranks ask ~10 times/s (insitu.publisher)
         self._stop = threading.Event()
         self._last_error_event = 0.0
         self._errors_unreported = 0

@@ -2,7 +2,7 @@
 
 A rank that keeps the cache (its chunks have a context count: protocol.messages.Chunk)
 sends every particle outside the step's regions once, as context rows with their ids, and
-again only when one moved (sim.context). The server keeps the last state of each such
+again only when one moved (insitu.context). The server keeps the last state of each such
 particle by id, with the rank that sent it and the step it was sent at, and draws it at
 every later step until it is evicted (it entered a region, or left the rank). A step whose
 chunks all keep the cache is completed: its fresh rows (inside the regions) plus every

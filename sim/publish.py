@@ -1,23 +1,13 @@
 """The simulation's side of minority.insitu: the fields `minority sim` builds from its
 ParticleState when `InSitu.due` says a step needs them (sim.ranks calls `connect`, `due`,
 `publish`, `close`). The publishing itself (spec, cadences, culling, Stats, sender thread,
-drop counts) is minority.insitu's; its options are re-exported here for `minority sim`'s
-callers.
+drop counts) is minority.insitu's.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from minority.insitu.payload import Particles
-from minority.insitu.publisher import (  # noqa: F401 (re-exported)
-    BLOCK_TIMEOUT_KEY,
-    BLOCK_TIMEOUT_S,
-    SENDER_QOS,
-    STATS_EVERY_S,
-    PublishOptions,
-    PublishStats,
-    record_path,
-)
 from minority.protocol.fields import FIELDS, FieldInfo
 from minority.sim.state import ParticleState
 

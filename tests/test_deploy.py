@@ -58,7 +58,7 @@ def test_zenoh_config_parses(path):
 
 
 def test_one_host_files_equal_the_embedded_defaults():
-    from minority.sim.publish import BLOCK_TIMEOUT_KEY, BLOCK_TIMEOUT_S
+    from minority.insitu.publisher import BLOCK_TIMEOUT_KEY, BLOCK_TIMEOUT_S
 
     server = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "one-host.json5"))
     assert json.loads(str(server)) == json.loads(str(make_config(NetworkOptions(), Role.SERVER)))
@@ -191,7 +191,7 @@ class Deployment:
         self.viewer = self._open("viewer.json5", certs, tmp)
         self.viewer_seen = Seen()
         self.viewer.declare_subscriber(keys.everything(RUN), self.viewer_seen)
-        # the rank follows spec updates, as sim/publish.py does
+        # the rank follows spec updates, as minority.insitu does
         self.rank = self._open("rank.json5", certs, tmp)
         self.rank_seen = Seen()
         self.rank.declare_subscriber(keys.spec(RUN), self.rank_seen)
@@ -244,7 +244,7 @@ def test_rank_publishes_chunks_events_stats_and_token_and_gets_the_spec(deployme
     d.rank.put(keys.stats(RUN), b"stats", congestion_control=zenoh.CongestionControl.BLOCK)
     assert d.server_seen.wait_for(keys.chunk(RUN, 5, 3))
     assert d.server_seen.wait_for(keys.event(RUN))
-    assert d.server_seen.wait_for(keys.stats(RUN))  # sim/publish.py's flow statistics
+    assert d.server_seen.wait_for(keys.stats(RUN))  # minority.insitu's flow statistics
     assert d.viewer_seen.wait_for(keys.event(RUN))
     token.undeclare()
     assert d.server_tokens.wait_for(f"DELETE:{keys.rank_token(RUN, 3)}")

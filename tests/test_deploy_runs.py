@@ -292,7 +292,7 @@ class TwoRuns:
                                                         history=True)
         self.rank_a = self.open(local_copy("rank.json5", certs, tmp, A))
         self.rank_b = self.open(local_copy("rank.json5", certs, tmp, B))
-        # rank A follows the spec of B (denied), then of A, as sim/publish.py follows its own
+        # rank A follows the spec of B (denied), then of A, as minority.insitu follows its own
         self.rank_a_seen = Counting()
         self.rank_a.declare_subscriber(keys.spec(B), self.rank_a_seen)
         self.rank_a.declare_subscriber(keys.spec(A), self.rank_a_seen)

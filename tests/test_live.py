@@ -356,9 +356,9 @@ BROWSER_SPEC = {
 @pytest.mark.skipif(not shutil.which(CHROMIUM), reason=f"no browser at {CHROMIUM} (Debian's "
                     "chromium package; .ci/run installs it)")
 def test_a_browser_watches_a_run_live(server, endpoint, tmp_path):
+    from minority.insitu.publisher import PublishOptions
     from minority.protocol.session import NetworkOptions
     from minority.render_server.daemon import RenderServer, ServerOptions
-    from minority.sim.publish import PublishOptions
     from minority.sim.ranks import RankRunConfig, run_ranks
     from minority.sim.scene import builtin_scene_path
     from PIL import Image

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from minority.insitu.visibility import visible_mask
 from minority.protocol.projection import (
     camera_basis,
     camera_coordinates,
@@ -17,7 +18,6 @@ from minority.protocol.spec import Camera, View
 from minority.render_server.camera import primary_rays, ray_frame
 from minority.render_server.cast import cast
 from minority.render_server.render import prepare, render
-from minority.sim.visibility import visible_mask
 
 WIDTH, HEIGHT = 64, 48  # px
 ROUND_TRIP_PX = 1e-9  # px: a projection and its inverse, in float64

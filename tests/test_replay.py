@@ -153,7 +153,7 @@ def test_vtk_series_round_trip(recorded, tmp_path):
 
 def test_publish_to_a_second_server_renders_the_same_frames(recorded, server, endpoint,
                                                             tmp_path, capsys):
-    from minority.sim.publish import SENDER_QOS
+    from minority.insitu.publisher import SENDER_QOS
 
     assert REPLAY_QOS == SENDER_QOS  # the simulation's QoS
     daemon = RenderServer(server, ServerOptions(RECORDED, tmp_path / "frames", None,

@@ -565,7 +565,7 @@ def test_every_s_cadences_and_stats_follow_the_steps_times(server, client_factor
         keep = r.pid % request.decimate == 0
         if request.regions is not None:
             keep &= in_box(r.x, FRONT_BOX)
-        fresh = c.positions[:c.fresh]  # the rest: context rows (sim.context)
+        fresh = c.positions[:c.fresh]  # the rest: context rows (insitu.context)
         assert np.array_equal(sorted_rows(fresh), sorted_rows(r.x[keep].astype(np.float32)))
         assert ("id" in c.fields) == (set(request.views) == {"side", "top"})
         if "id" in c.fields:

@@ -23,8 +23,9 @@ Contact model (sphere-sphere and sphere-wall; walls are flat, fixed and of infin
 Stiffness: k_n is chosen so that the bottom sphere of the column, carrying the weight of the
 n_z spheres above it, is compressed by `max_overlap` diameters: k_n = n_z m g / (eps d).
 Time step: explicit symplectic Euler, stable when dt is a small fraction of the contact's
-natural period t_c = pi sqrt(m_eff / k_n) (the shortest: sphere-sphere, m_eff = m / 2); the
-scene's `dt_fraction` (default 1/20) resolves each collision with about 20 steps.
+natural period t_c = pi sqrt(m_eff / k_n) (the shortest: sphere-sphere, m_eff = m / 2; the
+dashpot only lengthens it); the scene's `dt_fraction` (default 1/20) resolves each collision
+with at least 20 steps, rounded down to a whole number of steps per output frame.
 
 Neighbour search: linked cells of edge >= d over the channel (a counting sort each step), so
 each sphere tests the 27 cells around its own. Each sphere sums the forces on itself from
@@ -57,8 +58,8 @@ class Scene:
     """A column collapse. Lengths in m, times in s.
 
     The column is poured first: spheres on a loose jittered lattice (spacing 1.25 d) fall
-    into the box [0, column x] x channel width behind a gate for up to pour_s (until every
-    sphere is slower than settle_speed_m_s), which gives a random packing of about
+    into the box [0, column x] x channel width behind a gate for up to pour_s (until their
+    mean speed is below settle_speed_m_s), which gives a random packing of about
     `packing_fraction` and height column z; then the gate is lifted (t = 0) and the column
     collapses for duration_s."""
 
@@ -76,7 +77,7 @@ class Scene:
     dt_fraction: float = 0.05  # time step as a fraction of the contact period
     packing_fraction: float = 0.58  # of the poured column; sets the number of spheres
     pour_s: float = 0.5  # longest pour before the gate lifts
-    settle_speed_m_s: float = 0.02  # the pour ends early once every sphere is slower
+    settle_speed_m_s: float = 0.02  # the pour ends early once the mean speed is lower
     duration_s: float = 0.5  # of the collapse, after the gate lifts
     output_interval_s: float = 0.01
     seed: int = 0
@@ -453,8 +454,8 @@ class Simulation:
         self.contact_energy = np.zeros(n)
 
     def pour(self) -> None:
-        """Let the spheres fall, frictionless, behind the gate until every one is slower than
-        settle_speed_m_s (at least a free fall's time from the top) or pour_s has passed;
+        """Let the spheres fall, frictionless, behind the gate until their mean speed is
+        below settle_speed_m_s (after at least a free fall from the top) or pour_s has passed;
         then lift the gate (the end wall moves to the channel's end) and start the clock."""
         s = self.scene
         friction = self.params[[6, 7, 8, 10]]
@@ -464,7 +465,7 @@ class Simulation:
         while self.time_s < s.pour_s:
             self.advance()
             if self.step % check == 0 and self.time_s > fall_s:
-                if float(np.einsum("ij,ij->i", self.v, self.v).max()) < s.settle_speed_m_s ** 2:
+                if float(np.linalg.norm(self.v, axis=1).mean()) < s.settle_speed_m_s:
                     break
         self.pour_steps, self.pour_s = self.step, self.time_s
         self.box[0, 1] = s.channel_m[0]

@@ -211,3 +211,34 @@ def test_it_publishes_through_insitu_to_a_render_server(server, endpoint, tmp_pa
     assert "rank_done" in kinds and kinds[-1] == "run_end"
     assert any(e.kind == "run_start" and e.rank == 0 and e.detail["particles"] == SMALL.n
                for e in events)
+
+
+def test_without_a_server_it_records_and_a_crash_goes_out_as_an_error_event(tmp_path,
+                                                                           monkeypatch):
+    """No server: the example follows the spec file and records what it would have sent; a
+    solver that fails mid-run leaves an `error` event in the record, then the exception."""
+    from conftest import free_port
+
+    spec_file = tmp_path / "spec.json"
+    spec = json.loads((EXAMPLE / "spec.json").read_text())
+    spec["views"][0].update(width=64, height=48)
+    spec_file.write_text(json.dumps(spec))
+    advance = dem.Simulation.advance
+
+    def failing(self):
+        if self.pour_steps and self.step == 150:  # in the collapse, after the pour
+            raise FloatingPointError("the solver blew up at step 150")
+        advance(self)
+
+    monkeypatch.setattr(dem.Simulation, "advance", failing)
+    record = tmp_path / "dem.mcap"
+    with pytest.raises(FloatingPointError, match="blew up"):
+        run_py.run(run_py.Options(SMALL, connect=(f"tcp/127.0.0.1:{free_port()}",),
+                                  spec=spec_file, record=record), log=io.StringIO())
+    topics = [r.topic for r in read_log(record)]
+    assert topics[0] == "minority/dem_column/spec"
+    assert topics.count("minority/dem_column/chunk") == 1  # t = 0 (the next is at 20 ms)
+    assert topics.count("minority/dem_column/stats") >= 2
+    events = [r.decode() for r in read_log(record, ["minority/dem_column/event"])]
+    assert [e.kind for e in events] == ["run_start", "error", "rank_done"]
+    assert "FloatingPointError: the solver blew up" in events[1].message

@@ -1,8 +1,8 @@
 """A small DEM (discrete element method) granular column collapse, in numba.
 
 Monodisperse spheres (diameter d, density rho) in a channel: a floor (z = 0), a back wall
-(x = 0), an end wall (x = Lx), two side walls (y = 0, y = W). A rectangular column against the
-back wall is released at t = 0 and collapses into a heap under gravity.
+(x = 0), an end wall (x = Lx), two side walls (y = 0, y = W). A column poured against the back
+wall behind a gate is released at t = 0 and collapses into a heap under gravity.
 
 Contact model (sphere-sphere and sphere-wall; walls are flat, fixed and of infinite mass):
 - normal: linear spring-dashpot, F_n = max(k_n delta - gamma_n v_n, 0) n (no tension), delta
@@ -45,7 +45,9 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-MAX_CONTACTS = 16  # contacts whose history a sphere keeps: 12 spheres + walls, with margin
+# contacts whose tangential history a sphere keeps: equal spheres touch at most 12 others and
+# 3 walls (a corner); beyond it a contact would restart its spring every step
+MAX_CONTACTS = 16
 WALLS = 5  # x = 0, x = Lx, y = 0, y = W, z = 0
 
 

@@ -51,6 +51,7 @@ class Options:
     record: Path | None = None
     wait_s: float = 0.0
     progress: bool = True
+    threads: int = 1  # numba threads for the contact forces, restored after the run
 
 
 @dataclass
@@ -127,6 +128,17 @@ def run(opts: Options, log: TextIO | None = None) -> Summary:
         if opts.progress:
             print(msg, file=log, flush=True)
 
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(opts.threads, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        return _run(opts, scene, say, log)
+    finally:
+        numba.set_num_threads(threads)
+
+
+def _run(opts: Options, scene: dem.Scene, say, log: TextIO) -> Summary:
     sim = dem.Simulation(scene)
     say(f"dem_column: {sim.n} spheres of {scene.diameter_m * 1e3:.2f} mm, dt {sim.dt_s:.3g} s "
         f"({scene.steps_per_frame} steps per {scene.output_interval_s} s frame; contact period "
@@ -240,12 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"run.py: error: {exc}", file=sys.stderr)
         return 2
-    import numba
-
-    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     opts = Options(scene, args.out, args.run, not args.no_publish,
                    tuple(args.connect or ("tcp/127.0.0.1:7447",)), args.spec, args.record,
-                   args.wait)
+                   args.wait, threads=args.threads)
     summary = run(opts)
     if args.json:
         print(json.dumps(summary.to_dict()))

@@ -198,12 +198,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="python examples/dem_column/run.py",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="A DEM granular column collapse (spheres, spring-dashpot contacts with "
-        "Coulomb friction and rolling resistance, numba), poured behind a gate which lifts at "
-        "t = 0. It writes its frames to HDF5 in minority's trajectory layout and publishes "
-        "through minority.insitu, as any simulation would: next to `minority serve` serving "
-        "the run's spec it sends what the spec asks (frames rendered, everything logged to "
-        "MCAP); without a server it runs on, recording to --record if given.",
+        description="A DEM granular column collapse (spheres; spring-dashpot contacts with\n"
+        "Coulomb friction, spin and rolling resistance; numba), poured behind a gate that\n"
+        "lifts at t = 0. It writes its frames to HDF5 in minority's trajectory layout and\n"
+        "publishes through minority.insitu as any simulation would: next to `minority serve`\n"
+        "serving the run's spec it sends what the spec asks (frames rendered, everything\n"
+        "logged to MCAP); without a server it runs on, recording to --record if given.",
         epilog="examples:\n"
         "  minority serve --spec examples/dem_column/spec.json --out frames/ &\n"
         "  python examples/dem_column/run.py --out dem.h5          # next to it: frames/dem_column/\n"
@@ -211,29 +211,37 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "  python examples/dem_column/run.py --spec examples/dem_column/spec.json --record d.mcap\n"
         "method and costs: examples/dem_column/README.md")
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE,
+                   metavar="FILE.toml",
                    help="a scene TOML of dem.Scene's fields (default: %(default)s)")
     p.add_argument("--particles", type=int, default=None,
+                   metavar="N",
                    help="about this many spheres: the column's size stays, the diameter "
                    "shrinks to fit (default: the scene's diameter, 3,255 spheres)")
     p.add_argument("--duration", type=float, default=None,
+                   metavar="S",
                    help="simulated time of the collapse after the gate lifts, s (default: "
                    "the scene's, 0.5)")
     p.add_argument("--out", type=Path, default=None,
+                   metavar="FILE.h5",
                    help="write the trajectory to this HDF5 file (a frame every "
                    "output_interval_s; default: none)")
     p.add_argument("--run", default="dem_column",
+                   metavar="ID",
                    help="run id: the server serves the spec of this run (default: %(default)s)")
     p.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="zenoh endpoint of the render server, repeatable (default: "
                    "tcp/127.0.0.1:7447)")
     p.add_argument("--spec", type=Path, default=None,
+                   metavar="FILE.json",
                    help="a spec file to follow when no server serves the run's spec")
     p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
                    help="record what is published (or would be, without a server) to MCAP")
     p.add_argument("--wait", type=float, default=0.0,
+                   metavar="S",
                    help="keep trying to reach the server this long, s (default: 0)")
     p.add_argument("--no-publish", action="store_true", help="no network at all")
     p.add_argument("--threads", type=int, default=1,
+                   metavar="N",
                    help="numba threads for the contact forces (default: %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     return p.parse_args(argv)

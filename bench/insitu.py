@@ -3,23 +3,24 @@
     python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--mpm-steps S] [--threads T]
 
 {"bench": "insitu", "particles", "due_publish_s", "due_publish_cpu_s", "chunk_bytes",
- "chunk_s", "stats_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
+ "chunk_s", "stats_s", "sender_build_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
  "due_publish_over_mpm_step", "threads", "scene"}
 
 The particles are our column scene's (column_13k, column_100k, column_1m), seeded and
 stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT excluded):
 * mpm_step_s: the median wall time of one MPM step at that size (the CFL step);
 * due_publish_s: the median wall time of `viz.due` + building the wanted fields from the
-  ParticleState + `viz.publish` at a due step, against a live RenderServer in this process
+  ParticleState + `viz.publish` at a due step, against a live `minority serve` process
   on loopback (a 320x240 view of every particle every step, coloured by displacement, plus
   Stats at every due step: the worst case), the caller's thread only (the sender thread and
   the server run beside it, on the same cores); due_publish_cpu_s the same in the caller's
   thread CPU time; chunk_s and stats_s its two parts (PublishStats.prepare_s per chunk,
-  stats_s per Stats message), chunk_bytes the chunk's size;
+  stats_s per Stats message: the snapshots), chunk_bytes the chunk's size;
+  sender_build_s: the sender thread's culling and encoding per message (not the caller's);
 * idle_due_s: `viz.due` at a step nothing is due (the cost at most steps);
 * full_outbox_publish_s: the median of the same call when the outbox is full, against a
   server that stopped reading (its chunk callback never returns; shared memory off so the
-  link fills): the chunk is still culled and encoded, then the oldest queued one dropped.
+  link fills): the step is refused before any copy.
 Targets (issue 26): due_publish_s <= 2 % of mpm_step_s; full_outbox_publish_s <= 1 ms.
 """
 
@@ -28,7 +29,10 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import signal
 import statistics
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -38,7 +42,6 @@ import numba
 from minority.insitu import PublishOptions, connect
 from minority.protocol import Spec, keys
 from minority.protocol.session import NetworkOptions, Role, open_session
-from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.sim.driver import Simulator
 from minority.sim.publish import sim_fields
 from minority.sim.scene import builtin_scene_path, load_scene
@@ -99,13 +102,21 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
     bounds = ((0.0, 0.0, 0.0), tuple(map(float, scene.size_m)))
     the_spec = spec(scene.size_m)
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)
     with tempfile.TemporaryDirectory() as tmp:
-        server = RenderServer(session, ServerOptions(the_spec, Path(tmp), None, write_png=False))
+        spec_path = Path(tmp) / "spec.json"
+        the_spec.save(spec_path)
+        # the render server in its own process, as deployed: its threads share the cores,
+        # not the caller's interpreter
+        server = subprocess.Popen(
+            [sys.executable, "-m", "minority", "serve", "--spec", str(spec_path), "--out",
+             str(Path(tmp) / "frames"), "--listen", endpoint],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             options = PublishOptions(stats_every_s=1e-9)  # Stats at every step: the worst case
-            with connect(RUN, connect=(endpoint,), wait_s=10.0, particles=n,
+            with connect(RUN, connect=(endpoint,), wait_s=60.0, particles=n,
                          options=options) as viz:
+                if viz.spec is None:
+                    raise RuntimeError("the render server did not answer within 60 s")
                 wall, cpu = [], []
                 for k in range(WARMUP_CALLS + calls):
                     w, c = step_once(viz, sim, k, k * 1e-5, spacing, bounds)
@@ -115,17 +126,23 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
                     viz.wait_sent(60.0)  # one chunk at a time: never a drop
                 st = viz.stats
                 chunk_bytes = st.bytes_sent // max(st.sent, 1)
-                chunk_s = st.prepare_s / max(st.scheduled, 1)  # cull, encode, queue a chunk
-                stats_s = st.stats_s / max(st.stats_due, 1)  # compute, encode, queue Stats
+                chunk_s = st.prepare_s / max(st.scheduled, 1)  # snapshot and queue a chunk
+                stats_s = st.stats_s / max(st.stats_due, 1)  # snapshot and queue Stats
+                build_s = st.build_s / max(st.scheduled + st.stats_due, 1)  # sender thread
             idle = idle_due_s(n)
         finally:
-            server.close()
-            session.close()
+            server.send_signal(signal.SIGINT)
+            try:
+                server.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait()
     full = full_outbox(sim, the_spec, calls, spacing, bounds)
     due_publish = statistics.median(wall)
     return {"bench": "insitu", "particles": n, "due_publish_s": round(due_publish, 6),
             "due_publish_cpu_s": round(statistics.median(cpu), 6), "chunk_bytes": chunk_bytes,
             "chunk_s": round(chunk_s, 6), "stats_s": round(stats_s, 6),
+            "sender_build_s": round(build_s, 6),
             "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
             "mpm_step_s": round(step_s, 6),
             "due_publish_over_mpm_step": round(due_publish / step_s, 4),

@@ -25,8 +25,9 @@ that step, or the Stats cadence (every 5 ms of simulated time), so the loop buil
 only then; `viz.wanted` names the fields the due step needs. `viz.publish(step, time_s,
 positions, fields=..., ids=None, spacing_m=..., bounds_m=None)` culls to the spec's regions
 (with the particles outside them sent once, for the server's cache, and again only when
-they move), its views' fields, decimation and occlusion culling, encodes and queues; it
-never waits on the network (a full outbox drops the oldest chunk, counted). Bad input
+they move), its views' fields, decimation and occlusion culling: the caller's thread only
+copies what the step needs, the sender thread culls, encodes and puts; it never waits on
+the network (with the sender behind, a full outbox refuses the step at once, counted). Bad input
 raises ValueError before anything is sent. `viz.close(detail=None)` drains the outbox,
 sends the `rank_done` event with the counts and returns them (`PublishStats`); `with` does
 it, and publishes an exception raised in the loop as an `error` event first.

@@ -159,9 +159,10 @@ class InSitu:
                 fields: Mapping[str, np.ndarray] | None = None, ids: np.ndarray | None = None,
                 *, spacing_m: float, bounds_m: Bounds | None = None) -> bool:
         """Hand over this rank's particles at a step `due` said yes to (asked here when the
-        caller did not); returns at once, never waits on the network (a full outbox drops
-        its oldest chunk, counted in `stats.dropped_outbox`). Returns whether a chunk was
-        scheduled.
+        caller did not); returns at once: it copies what the step needs for the sender
+        thread, which culls and encodes, and never waits on the network (a full outbox
+        refuses the step without copying, counted in `stats.dropped_outbox`). Returns
+        whether a chunk was scheduled.
 
         positions [n, 3] m; fields: name -> [n] or [n, k] values (SI units): those the spec's
         views name ("X_magnitude" is computed from a given [n, k] "X"), and for Stats

@@ -79,15 +79,16 @@ class ContextTracker:
         self._sent[evict] = np.nan
         rows = np.flatnonzero(outside)
         last = self._sent[pid[rows]]  # [m, 3], NaN where not cached
+        now = x[rows].astype(np.float32)  # as the wire carries them: float64 rounding is no move
         new = np.isnan(last[:, 0])  # not cached: sent whatever their position
         moved = new.copy()
         if self.tolerance_m > 0.0:
-            d2 = np.einsum("ij,ij->i", x[rows] - last, x[rows] - last)
-            moved |= d2 > self.tolerance_m ** 2
+            step = (now - last).astype(np.float64)
+            moved |= np.einsum("ij,ij->i", step, step) > self.tolerance_m ** 2
         else:
-            moved |= np.any(x[rows] != last, axis=1)
+            moved |= np.any(now != last, axis=1)
         rows = rows[moved]
-        self._sent[pid[rows]] = x[rows]
+        self._sent[pid[rows]] = now[moved]
         self._cached += int(new.sum()) - len(evict)
         self.context_rows += len(rows)
         self.evicted += len(evict)

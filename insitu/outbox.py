@@ -9,6 +9,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 OUTBOX_CHUNKS = 4  # chunks queued for the sender at most (the oldest is dropped)
@@ -21,18 +22,29 @@ CHUNK, STATS, CONTROL = "chunk", "stats", "control"  # kinds of outbox items
 @dataclass
 class OutboxItem:
     key: str
-    payload: bytearray
+    payload: bytearray | None  # None until `build` made it (on the sender thread)
     kind: str  # CHUNK, STATS or CONTROL (spec, events)
     particles: int = 0
     publish: bool = True  # False: only recorded (the spec the rank follows)
+    # culls and encodes the payload from a snapshot of the caller's arrays: (payload,
+    # particles); `nbytes` counts the snapshot meanwhile
+    build: Callable[[], tuple[bytearray, int]] | None = None
+    nbytes: int = 0
+
+    @property
+    def size(self) -> int:
+        """Bytes the item holds: its payload, or the snapshot it is built from."""
+        return len(self.payload) if self.payload is not None else self.nbytes
 
 
 class Outbox:
     """A bounded FIFO between the simulation thread and the sender: at most `max_chunks`
     chunks and `max_bytes` of chunk payload (but always the newest chunk), and at most
-    `max_stats` Stats messages; a full outbox drops its oldest item of the kind that
-    overflows (the newest data is what a viewer wants). Control messages (spec, events)
-    are few and small and always enter."""
+    `max_stats` Stats messages; an item that overflows them drops the oldest of its kind.
+    The publisher asks `full` first and refuses a new chunk or Stats message itself while
+    the sender is behind, so a stopped server costs the caller no copy. Chunk and Stats
+    items hold a snapshot and a `build` the sender runs (cull, encode) when it takes them.
+    Control messages (spec, events) are few and small and always enter."""
 
     def __init__(self, max_chunks: int, max_bytes: int, max_stats: int = OUTBOX_STATS):
         self.max_chunks, self.max_bytes, self.max_stats = max_chunks, max_bytes, max_stats
@@ -49,11 +61,11 @@ class Outbox:
         with self._cond:
             if item.kind == CHUNK:
                 while self._chunks and (self._chunks >= self.max_chunks
-                                        or self._bytes + len(item.payload) > self.max_bytes):
+                                        or self._bytes + item.size > self.max_bytes):
                     self._drop_oldest(CHUNK)
                     dropped += 1
                 self._chunks += 1
-                self._bytes += len(item.payload)
+                self._bytes += item.size
             elif item.kind == STATS:
                 while self._stats and self._stats >= self.max_stats:
                     self._drop_oldest(STATS)
@@ -63,10 +75,17 @@ class Outbox:
             self._cond.notify()
         return dropped
 
+    def full(self, kind: str) -> bool:
+        """Whether an item of `kind` (CHUNK or STATS) would push an older one out: the
+        sender is behind (a slow or stopped server, a slow disk)."""
+        with self._cond:
+            return (self._chunks >= self.max_chunks if kind == CHUNK
+                    else kind == STATS and self._stats >= self.max_stats)
+
     def _count(self, item: OutboxItem, sign: int) -> None:
         if item.kind == CHUNK:
             self._chunks += sign
-            self._bytes += sign * len(item.payload)
+            self._bytes += sign * item.size
         elif item.kind == STATS:
             self._stats += sign
 

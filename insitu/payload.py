@@ -17,6 +17,8 @@ statistics of a Stats message, from what the caller hands over at one step (`Par
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,11 +32,41 @@ ID_FIELD = "id"
 MAGNITUDE = "_magnitude"
 
 
+class BufferPool:
+    """Arrays reused from one snapshot to the next: a fresh array of a few MB costs its page
+    faults on first touch, about as much again as the copy into it. At most `keep` free
+    arrays of each shape and dtype are kept. Thread-safe (the caller copies, the sender's
+    last reference gives back)."""
+
+    def __init__(self, keep: int = 8):
+        self.keep = keep
+        self._free: dict[tuple, list[np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def copy(self, a: np.ndarray) -> np.ndarray:
+        key = (a.shape, a.dtype.str)
+        with self._lock:
+            free = self._free.get(key)
+            out = free.pop() if free else None
+        if out is None:
+            out = np.empty(a.shape, a.dtype)
+        np.copyto(out, a)
+        return out
+
+    def give(self, arrays: list[np.ndarray]) -> None:
+        with self._lock:
+            for a in arrays:
+                free = self._free.setdefault((a.shape, a.dtype.str), [])
+                if len(free) < self.keep:
+                    free.append(a)
+
+
 @dataclass
 class Particles:
-    """One rank's particles at one step, as the caller gives them (not copied: used before
-    the call that took them returns). positions [n, 3] m; ids [n] int64 >= 0; fields:
-    name -> [n] or [n, k] values (SI units; protocol.fields names the usual ones)."""
+    """One rank's particles at one step, as the caller gives them (not copied: the publisher
+    takes a `snapshot` of what it needs before the call returns). positions [n, 3] m; ids
+    [n] int64 >= 0; fields: name -> [n] or [n, k] values (SI units; protocol.fields names
+    the usual ones)."""
 
     positions: np.ndarray
     ids: np.ndarray
@@ -51,6 +83,31 @@ class Particles:
             return True
         base = name.removesuffix(MAGNITUDE)
         return base != name and base in self.fields and self.fields[base].ndim == 2
+
+    def snapshot(self, names, pool: BufferPool | None = None) -> Particles:
+        """A copy of what `names` read (positions, ids and each named field, or the vector a
+        `X_magnitude` is computed from), for the sender thread to cull and encode after the
+        caller has moved on and changed its arrays; into `pool`'s arrays, which go back to
+        it once the snapshot is gone."""
+        keep: dict[str, np.ndarray] = {}
+        for name in names:
+            base = name.removesuffix(MAGNITUDE)
+            if name in self.fields:
+                keep[name] = self.fields[name]
+            elif base in self.fields:
+                keep[base] = self.fields[base]
+        if pool is None:
+            return Particles(self.positions.copy(), self.ids.copy(),
+                             {k: v.copy() for k, v in keep.items()})
+        snap = Particles(pool.copy(self.positions), pool.copy(self.ids),
+                         {k: pool.copy(v) for k, v in keep.items()})
+        weakref.finalize(snap, pool.give, [snap.positions, snap.ids, *snap.fields.values()])
+        return snap
+
+    @property
+    def nbytes(self) -> int:
+        return (self.positions.nbytes + self.ids.nbytes
+                + sum(v.nbytes for v in self.fields.values()))
 
     def field(self, name: str, rows: np.ndarray | None = None) -> np.ndarray:
         """The wire array of field `name` at `rows` [m] (None: all n): float32 [m] or [m, k]
@@ -155,6 +212,7 @@ def speed_bins(speed_m_s: np.ndarray) -> np.ndarray:
 
 
 STATS_FIELDS = ("velocity", "displacement")  # what flow_stats reads (displacement: optional)
+STATS_READS = STATS_FIELDS + tuple(f + MAGNITUDE for f in STATS_FIELDS)  # or their magnitudes
 
 
 def flow_stats(run: str, rank: int, step: int, time_s: float, p: Particles,

@@ -16,12 +16,16 @@ without ever blocking the simulation. The public face of it is insitu.api (`conn
   whether or not the spec is known.
 * `RankPublisher` opens the rank's zenoh session (a client: no server -> it runs on and
   says why once), declares the rank's liveliness token, fetches the spec (a zenoh get with
-  a timeout; a spec file is the fallback), follows spec updates, and hands encoded
-  messages to one sender thread through a bounded outbox. A full outbox drops its oldest
-  chunk; nothing the simulation thread does waits on the network. Every drop is counted
-  (`PublishStats`) and reported in the rank's `rank_done` event.
-* Stats messages go through the same outbox, bounded on their own (OUTBOX_STATS, the oldest
-  dropped first, counted in `stats_dropped`); spec and events always enter.
+  a timeout; a spec file is the fallback), follows spec updates, and hands snapshots of
+  what a due step needs (positions, ids, the wanted fields: a copy) to one sender thread
+  through a bounded outbox; the sender culls, splits the context rows and encodes them, in
+  step order, then puts. While the sender is behind (4 chunks queued), a new chunk is
+  refused at once, before any copy; nothing the simulation thread does waits on the network
+  or on culling. Every drop is counted (`PublishStats`) and reported in the rank's
+  `rank_done` event.
+* Stats messages go through the same outbox, bounded on their own (OUTBOX_STATS; refused
+  while full, counted in `stats_dropped`), computed on the sender thread from a snapshot of
+  the velocities and displacements; spec and events always enter.
 * With a record path, the sender thread also writes every message it takes from the
   outbox (spec, chunks, stats, events, as published) to that rank's MCAP record.
 """
@@ -55,6 +59,8 @@ from minority.insitu.outbox import (
 from minority.insitu.payload import (
     ID_FIELD,
     STATS_FIELDS,
+    STATS_READS,
+    BufferPool,
     Particles,
     chunk_fields,
     cull_rows,
@@ -143,14 +149,16 @@ class PublishStats:
     bytes_sent: int = 0  # chunk payload bytes handed to zenoh
     particles_sent: int = 0
     particles_total: int = 0  # particles on the rank at the scheduled steps (before culling)
-    prepare_s: float = 0.0  # simulation-thread time culling, encoding, queueing, s
+    prepare_s: float = 0.0  # simulation-thread time taking a chunk's snapshot, queueing, s
     missing_fields: list[str] = field(default_factory=list)  # requested, not known here
     # Stats messages (not part of the chunk counts above, nor of `dropped`)
     stats_due: int = 0  # steps the stats cadence picked
     stats_sent: int = 0  # put with a subscriber matching (as `sent`)
     stats_dropped: int = 0  # due but not put (no server or subscriber, outbox full, stalled,
     #                         refused, exit) or put but unconfirmed when a stall came
-    stats_s: float = 0.0  # simulation-thread time computing, encoding, queueing Stats, s
+    stats_s: float = 0.0  # simulation-thread time taking a Stats snapshot, queueing, s
+    build_s: float = 0.0  # sender-thread time culling and encoding chunks and Stats, s
+    build_errors: int = 0  # chunks or Stats whose culling or encoding raised (a bug)
     # context rows (particles outside the regions, for the server's cache; part of
     # particles_sent when their chunk was sent), evicted ids, resets (first step, a spec
     # change, a dropped chunk)
@@ -185,6 +193,7 @@ class RankPublisher(Sender):
         self.stats = PublishStats()
         self.no_server_reason = ""
         self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
+        self._pool = BufferPool(keep=options.outbox_chunks + 2)  # snapshots' arrays, reused
         self._stats_cadence = (Window(every_s=options.stats_every_s)
                                if options.stats_every_s > 0 else None)
         self._context = (ContextTracker(options.context_tolerance_m)
@@ -354,9 +363,15 @@ class RankPublisher(Sender):
             self.due(step, time_s)
         _, _, prev, request, stats = self._due
         self._due = (step, time_s, prev, None, False)  # consumed
-        if stats:
-            self._publish_stats(step, time_s, particles)
+        # one snapshot for both (what the chunk and the Stats read), then both into the
+        # outbox: the sender wakes once the caller's copy is done, not in the middle of it
+        names = (tuple(request.fields) if request is not None else ()) + (
+            STATS_READS if stats else ())
+        shared = (particles.snapshot(names, self._pool)
+                  if request is not None and stats and not self._outbox.full(CHUNK) else None)
+        stats_item = self._stats_item(step, time_s, particles, shared) if stats else None
         if request is None:
+            self._put_stats(stats_item)
             return False
         t0 = time.perf_counter()
         with self._lock:
@@ -364,9 +379,36 @@ class RankPublisher(Sender):
         for name in request.fields:
             if not particles.has(name):
                 self._missing(name, particles)
-        p = particles
+        if self._outbox.full(CHUNK):  # the sender is behind: this step goes, at no cost
+            with self._lock:
+                self.stats.dropped_outbox += 1
+                self.stats.prepare_s += time.perf_counter() - t0
+            self._put_stats(stats_item)
+            return True
+        snap = shared if shared is not None else particles.snapshot(request.fields, self._pool)
+        spec = self.spec
+
+        def build() -> tuple[bytearray, int]:
+            return self._build_chunk(step, time_s, prev, request, spec, snap, spacing_m,
+                                     bounds_m)
+
+        item = OutboxItem(keys.chunk(self.run, step, self.rank), None, CHUNK, build=build,
+                          nbytes=snap.nbytes)
+        self._put_stats(stats_item)
+        dropped = self._outbox.put(item)
+        with self._lock:
+            self.stats.dropped_outbox += dropped
+            self.stats.prepare_s += time.perf_counter() - t0
+        return True
+
+    def _build_chunk(self, step: int, time_s: float, prev: float | None,
+                     request: DataRequest, spec: Spec, p: Particles, spacing_m: float,
+                     bounds_m: Bounds) -> tuple[bytearray, int]:
+        """On the sender thread, in step order: cull a snapshot, split its context rows,
+        encode the chunk. Returns (payload, particles)."""
+        t0 = time.perf_counter()
         inside = None if request.regions is None else inside_mask(p.positions, request.regions)
-        radius = render_radius_m(self.spec, spacing_m)
+        radius = render_radius_m(spec, spacing_m)
         context = None
         if self._context is None:
             rows = cull_rows(p, request, radius, inside)
@@ -389,14 +431,10 @@ class RankPublisher(Sender):
         if context is not None:
             chunk.context_ids = p.ids[context.rows].astype(np.int64)
             chunk.evict_ids, chunk.context_reset = context.evict, context.reset
-        item = OutboxItem(keys.chunk(self.run, step, self.rank), chunk.encode(), CHUNK, chunk.count)
-        dropped = self._outbox.put(item)
+        payload = chunk.encode()
         with self._lock:
-            self.stats.dropped_outbox += dropped
-            self.stats.prepare_s += time.perf_counter() - t0
-        if dropped:
-            self._context_stale = True
-        return True
+            self.stats.build_s += time.perf_counter() - t0
+        return payload, chunk.count
 
     def _missing(self, name: str, particles: Particles) -> None:
         """Say once that the spec (or the Stats) needs a field the caller does not give."""
@@ -421,22 +459,45 @@ class RankPublisher(Sender):
             self.stats.context_resets += split.reset
         return split
 
-    def _publish_stats(self, step: int, time_s: float, p: Particles) -> None:
-        """Compute, encode and queue this rank's Stats (the spec's open regions at time_s;
-        none while the spec is not known). Without a velocity field: not sent (dropped)."""
+    def _stats_item(self, step: int, time_s: float, p: Particles,
+                    snap: Particles | None = None) -> OutboxItem | None:
+        """This rank's Stats as an outbox item, computed and encoded on the sender thread
+        from a snapshot (the spec's open regions at time_s; none while the spec is not
+        known). None, counted as dropped, without a velocity field or with the sender
+        behind (a full Stats queue)."""
         t0 = time.perf_counter()
         if not ("velocity" in p.fields or "velocity_magnitude" in p.fields):
             self._missing("velocity", p)
             with self._lock:
                 self.stats.stats_dropped += 1
-            return
+            return None
+        if self._outbox.full(STATS):
+            with self._lock:
+                self.stats.stats_dropped += 1
+                self.stats.stats_s += time.perf_counter() - t0
+            return None
         spec = self.spec
         regions = () if spec is None else spec.active_regions(time_s)
-        message = flow_stats(self.run, self.rank, step, time_s, p, regions)
-        dropped = self._outbox.put(OutboxItem(keys.stats(self.run), message.encode(), STATS))
+        snap = snap if snap is not None else p.snapshot(STATS_READS, self._pool)
+        run, rank = self.run, self.rank
+
+        def build() -> tuple[bytearray, int]:
+            t1 = time.perf_counter()
+            payload = flow_stats(run, rank, step, time_s, snap, regions).encode()
+            with self._lock:
+                self.stats.build_s += time.perf_counter() - t1
+            return payload, 0
+
         with self._lock:
-            self.stats.stats_dropped += dropped
             self.stats.stats_s += time.perf_counter() - t0
+        return OutboxItem(keys.stats(self.run), None, STATS, build=build, nbytes=snap.nbytes)
+
+    def _put_stats(self, item: OutboxItem | None) -> None:
+        if item is not None:
+            dropped = self._outbox.put(item)
+            if dropped:
+                with self._lock:
+                    self.stats.stats_dropped += dropped
 
     def event(self, kind: EventKind, message: str, detail: dict | None = None) -> None:
         if self.run is None:
@@ -487,4 +548,5 @@ class RankPublisher(Sender):
         d["dropped"] = self.stats.dropped
         d["prepare_s"] = round(d["prepare_s"], 6)
         d["stats_s"] = round(d["stats_s"], 6)
+        d["build_s"] = round(d["build_s"], 6)
         return d

@@ -105,6 +105,8 @@ class Sender:
             if item is None:
                 continue
             try:
+                if item.build is not None and not self._build(item):
+                    continue
                 outcome = self._send(item) if item.publish else "local"
                 recorded = self._record(item)
                 with self._lock:
@@ -130,6 +132,27 @@ class Sender:
                     self._start_checkpoint()
             finally:
                 self._outbox.done()
+
+    def _build(self, item: OutboxItem) -> bool:
+        """Cull and encode a chunk or Stats item from its snapshot; False (counted as
+        failed, said once) when that raises: the loop goes on with the next item."""
+        try:
+            item.payload, item.particles = item.build()
+            item.build = None
+            return True
+        except Exception as exc:  # noqa: BLE001 - the sender must outlive a bad snapshot
+            with self._lock:
+                if item.kind == CHUNK:
+                    self.stats.failed += 1
+                    self._context_stale = True  # its context rows may be half recorded
+                else:
+                    self.stats.stats_dropped += 1
+                first = not self.stats.build_errors
+                self.stats.build_errors += 1
+            if first:
+                print(f"rank {self.rank}: could not build a {item.kind} for {item.key}: "
+                      f"{exc!r}; counted as failed", file=self.log, flush=True)
+            return False
 
     def _record(self, item: OutboxItem) -> int:
         """Write the message to the rank's record; 1 if written. The record ends at its first

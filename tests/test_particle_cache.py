@@ -95,6 +95,18 @@ def test_a_rank_sends_the_outside_once_then_only_what_moved_and_evicts_what_ente
     assert again.reset and len(again.rows) == outside.sum()
 
 
+def test_float64_positions_at_rest_are_not_resent():
+    """The wire carries float32: positions given in float64 that did not move are not sent
+    again at tolerance 0 (their float32 rounding is no motion)."""
+    x = np.random.default_rng(4).uniform(0.0, 1.0, (30, 3))  # float64
+    pid = np.arange(30, dtype=np.int64)
+    t = ContextTracker(tolerance_m=0.0)
+    assert len(t.split(pid, x, np.ones(30, bool)).rows) == 30
+    assert len(t.split(pid, x.copy(), np.ones(30, bool)).rows) == 0
+    x[3, 1] += 1e-3
+    assert t.split(pid, x, np.ones(30, bool)).rows.tolist() == [3]
+
+
 def steps_through_the_wire(states, box, tolerance_m=0.0):
     """Chunks of one rank for each state (positions [n, 3]): the fresh rows inside `box`, the
     context rows from a tracker; assembled and completed as the server does."""

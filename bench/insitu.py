@@ -20,7 +20,7 @@ stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT exclu
 * idle_due_s: `viz.due` at a step nothing is due (the cost at most steps);
 * full_outbox_publish_s: the median of the same call when the outbox is full, against a
   server that stopped reading (its chunk callback never returns; shared memory off so the
-  link fills): the step is refused before any copy.
+  link fills): `due` refuses the step, so nothing is built nor copied.
 Targets (issue 26): due_publish_s <= 2 % of mpm_step_s; full_outbox_publish_s <= 1 ms.
 """
 

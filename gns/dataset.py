@@ -164,9 +164,12 @@ def pack(items: Iterable[Packed], out_dir: str | Path, *, connectivity_radius_m:
                 raise DatasetError(f"{it.name}: split {it.split!r}, expected one of {SPLITS}")
             if it.name in files[it.split]:
                 raise DatasetError(f"two {it.split} trajectories named {it.name!r}")
+            if pos.shape[0] < 2:
+                raise DatasetError(f"{it.name}: {pos.shape[0]} frame(s); a trajectory needs 2")
             if pos.shape[0] < INPUT_VELOCITIES + 2:
-                raise DatasetError(f"{it.name}: {pos.shape[0]} frames; a training window "
-                                   f"needs {INPUT_VELOCITIES + 2}")
+                print(f"dataset: note: {it.name} has {pos.shape[0]} frames, fewer than a "
+                      f"training window's {INPUT_VELOCITIES + 2}: it gives no training sample",
+                      file=log)
             frame_dt.add(round(float(it.frame_interval_s), 12))
             spacing.append(float(it.particle_spacing_m))
             g = files[it.split].create_group(it.name)

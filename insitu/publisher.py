@@ -317,8 +317,9 @@ class RankPublisher(Sender):
     def due(self, step: int, time_s: float) -> bool:
         """Call at every step (step 0 included), with the simulated time (s) after it:
         whether this step needs `publish` (the spec schedules a chunk, or the Stats cadence
-        picks it, and there is somewhere to send or record it). Counts what the schedule
-        asked for (`scheduled`, `stats_due`; with nowhere to go, their drops).
+        picks it, there is somewhere to send or record it, and the sender is not behind).
+        Counts what the schedule asked for (`scheduled`, `stats_due`) and what it refuses
+        here (no server nor record; a full outbox: `dropped_outbox`, `stats_dropped`).
 
         The previous call's time is this step's `prev_time_s` (None at step 0, or when the
         previous call was not for step - 1): `every_s` cadences need it, and the chunk
@@ -330,15 +331,23 @@ class RankPublisher(Sender):
         stats = self._stats_cadence is not None and self._stats_cadence.wants(step, time_s, prev)
         request = self.request(step, time_s, prev)
         nowhere = self.session is None and self._writer is None  # nothing is built then
+        # the sender is behind (a full outbox): refused here, so the caller builds nothing
+        behind = not nowhere and request is not None and self._outbox.full(CHUNK)
+        stats_behind = not nowhere and stats and self._outbox.full(STATS)
         with self._lock:
             if stats:
                 self.stats.stats_due += 1
-                self.stats.stats_dropped += nowhere
+                self.stats.stats_dropped += nowhere or stats_behind
             if request is not None:
                 self.stats.scheduled += 1
                 self.stats.dropped_no_server += nowhere
+                self.stats.dropped_outbox += behind
         if nowhere:
             request, stats = None, False
+        if behind:
+            request = None
+        if stats_behind:
+            stats = False
         self._due = (step, time_s, prev, request, stats)
         return request is not None or stats
 

@@ -151,11 +151,13 @@ def test_publish_never_waits_for_a_server_that_stopped_reading(endpoint, tmp_pat
         viz = connect(RUN, connect=(endpoint,), wait_s=5.0, options=options, log=log)
         step = 0
         while viz.stats.dropped_outbox == 0 and step < 100_000:
-            assert viz.due(step, step * DT_S)
-            x, fields = fields_at(x0, step)
-            viz.publish(step, step * DT_S, x, fields=fields, spacing_m=SPACING_M)
+            if viz.due(step, step * DT_S):  # False once the outbox is full: nothing to build
+                x, fields = fields_at(x0, step)
+                viz.publish(step, step * DT_S, x, fields=fields, spacing_m=SPACING_M)
             step += 1
         assert viz.stats.dropped_outbox > 0  # the outbox was full, and publish returned
+        assert not viz.due(step, step * DT_S)  # still full: refused before any work
+        step += 1
         stats = viz.close()
         assert stats.scheduled == step and stats.sent + stats.dropped == stats.scheduled
         assert stats.dropped >= stats.dropped_outbox > 0

@@ -5,7 +5,6 @@ renders). Network tests: loopback, a free port each, waits on counts with timeou
 
 import io
 import json
-import threading
 
 import numpy as np
 import pytest
@@ -13,11 +12,11 @@ from conftest import free_port
 from minority.insitu import PublishOptions, connect
 from minority.protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
 from minority.protocol.log import read_log
-from minority.protocol.session import Inbox, NetworkOptions, Role, open_session
+from minority.protocol.session import Inbox, NetworkOptions
 from minority.protocol.view import Window
 from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import wait_until
-from test_sim_publish import SIM_SIDE_CONFIG, wait_for_subscriber
+from test_sim_publish import stalled_server, wait_for_subscriber
 
 from minority.cli import main
 
@@ -128,26 +127,12 @@ def test_publish_never_waits_for_a_server_that_stopped_reading(endpoint, tmp_pat
     """A server whose chunk callback never returns: zenoh stops reading the link, the
     sender's put blocks, and every publish call still returns: the loop runs until the
     outbox has overflowed (drops counted), and every scheduled chunk is accounted for."""
-    server_cfg = tmp_path / "server.json5"
-    server_cfg.write_text('{ mode: "peer", scouting: { multicast: { enabled: false } }, '
-                          'transport: { link: { tcp: { so_rcvbuf: 65536 } } } }')
-    (tmp_path / "client.json5").write_text(SIM_SIDE_CONFIG)  # no shm, small buffers
-    server = open_session(NetworkOptions(listen=[endpoint], config=server_cfg), Role.SERVER)
-    gate, arrived = threading.Event(), []
     spec = Spec.from_dict(spec_dict([{"every_steps": 1}]))
-
-    def never_return(sample):
-        arrived.append(1)
-        gate.wait()
-
-    queryable = server.declare_queryable(keys.spec(RUN), lambda q: q.reply(
-        keys.spec(RUN), bytes(spec.encode())))
-    stuck = server.declare_subscriber(keys.chunks(RUN), never_return)
     options = PublishOptions(network=NetworkOptions(config=tmp_path / "client.json5"),
                              drain_timeout_s=1.0, stats_every_s=0.0)
     x0 = block(4000)  # 64 kB per chunk
     log = io.StringIO()
-    try:
+    with stalled_server(endpoint, tmp_path, spec) as arrived:
         viz = connect(RUN, connect=(endpoint,), wait_s=5.0, options=options, log=log)
         step = 0
         while viz.stats.dropped_outbox == 0 and step < 100_000:
@@ -162,11 +147,6 @@ def test_publish_never_waits_for_a_server_that_stopped_reading(endpoint, tmp_pat
         assert stats.scheduled == step and stats.sent + stats.dropped == stats.scheduled
         assert stats.dropped >= stats.dropped_outbox > 0
         assert len(arrived) == 1  # the one chunk the callback holds
-    finally:
-        gate.set()
-        stuck.undeclare()
-        queryable.undeclare()
-        server.close()
 
 
 def test_an_exception_in_the_loop_arrives_as_an_error_event_then_done(server, client_factory,

@@ -5,6 +5,7 @@ server renders the culled chunks; without a server, or with a subscriber that ne
 the run finishes with every drop counted.
 Network tests: loopback, a free port each, waits on counts with timeouts."""
 
+import contextlib
 import dataclasses
 import io
 import json
@@ -207,25 +208,40 @@ SIM_SIDE_CONFIG = """{
 """
 
 
-def test_a_subscriber_that_never_reads_costs_counted_drops_not_time(endpoint, tmp_path):
-    """A server whose chunk callback blocks forever: zenoh stops reading the link, the
-    rank's puts block, the sender stalls, and the simulation runs on to the end."""
+@contextlib.contextmanager
+def stalled_server(endpoint: str, tmp_path: Path, spec: Spec):
+    """A server that answers the spec but whose chunk callback never returns (until the
+    block ends): zenoh stops reading the link (small socket buffers, no shared memory on
+    the rank's side: tmp_path/client.json5). Yields the list the callback appends to."""
     server_cfg = tmp_path / "server.json5"
     server_cfg.write_text('{ mode: "peer", scouting: { multicast: { enabled: false } }, '
                           'transport: { link: { tcp: { so_rcvbuf: 65536 } } } }')
     (tmp_path / "client.json5").write_text(SIM_SIDE_CONFIG)
     server = open_session(NetworkOptions(listen=[endpoint], config=server_cfg), Role.SERVER)
     gate, arrived = threading.Event(), []
-    spec = Spec.from_dict(spec_dict(every_steps=1, regions=False))
 
     def never_return(sample):
         arrived.append(1)
         gate.wait()
 
-    queryable = server.declare_queryable(keys.spec(RUN), lambda q: q.reply(
-        keys.spec(RUN), bytes(spec.encode())))
-    stuck = server.declare_subscriber(keys.chunks(RUN), never_return)
+    run = spec.run
+    queryable = server.declare_queryable(keys.spec(run), lambda q: q.reply(
+        keys.spec(run), bytes(spec.encode())))
+    stuck = server.declare_subscriber(keys.chunks(run), never_return)
     try:
+        yield arrived
+    finally:
+        gate.set()
+        stuck.undeclare()
+        queryable.undeclare()
+        server.close()
+
+
+def test_a_subscriber_that_never_reads_costs_counted_drops_not_time(endpoint, tmp_path):
+    """A server whose chunk callback blocks forever: zenoh stops reading the link, the
+    rank's puts block, the sender stalls, and the simulation runs on to the end."""
+    spec = Spec.from_dict(spec_dict(every_steps=1, regions=False))
+    with stalled_server(endpoint, tmp_path, spec) as arrived:
         cfg = config(endpoint, tmp_path, 300, drain_timeout_s=2.0)
         cfg.publish.network.config = tmp_path / "client.json5"
         cfg.scene_path = tmp_path / "slide.toml"  # 3,200 particles: 77 kB per chunk
@@ -241,11 +257,6 @@ def test_a_subscriber_that_never_reads_costs_counted_drops_not_time(endpoint, tm
         assert p["sent"] + p["dropped"] == p["scheduled"]  # every chunk accounted for
         assert "the server stopped reading" in log.getvalue()
         assert len(arrived) == 1  # the one chunk the callback holds
-    finally:
-        gate.set()
-        stuck.undeclare()
-        queryable.undeclare()
-        server.close()
 
 
 def wait_for_subscriber(server, key: str) -> None:

@@ -3,7 +3,7 @@
     python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--mpm-steps S] [--threads T]
 
 {"bench": "insitu", "particles", "due_publish_s", "due_publish_cpu_s", "chunk_bytes",
- "chunk_s", "stats_s", "sender_build_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
+ "copy_floor_s", "chunk_s", "stats_s", "sender_build_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
  "due_publish_over_mpm_step", "threads", "scene"}
 
 The particles are our column scene's (column_13k, column_100k, column_1m), seeded and
@@ -17,6 +17,8 @@ stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT exclu
   thread CPU time; chunk_s and stats_s its two parts (PublishStats.prepare_s per chunk,
   stats_s per Stats message: the snapshots), chunk_bytes the chunk's size;
   sender_build_s: the sender thread's culling and encoding per message (not the caller's);
+* copy_floor_s: copying what such a step reads (positions, ids, displacement, velocity)
+  into warm buffers: the least a hand-over that never blocks can cost;
 * idle_due_s: `viz.due` at a step nothing is due (the cost at most steps);
 * full_outbox_publish_s: the median of the same call when the outbox is full, against a
   server that stopped reading (its chunk callback never returns; shared memory off so the
@@ -39,6 +41,7 @@ import time
 from pathlib import Path
 
 import numba
+import numpy as np
 from minority.insitu import PublishOptions, connect
 from minority.protocol import Spec, keys
 from minority.protocol.session import NetworkOptions, Role, open_session
@@ -93,10 +96,26 @@ def step_once(viz, sim, step: int, time_s: float, spacing: float, bounds) -> tup
     return time.perf_counter() - t0, time.thread_time() - c0
 
 
+def copy_floor_s(sim: Simulator, calls: int = 10) -> float:
+    """The least a non-blocking hand-over costs the caller: copying the arrays a due step
+    with Stats reads (positions, ids, displacement, velocity) into warm buffers, median s."""
+    ps = sim.particles
+    arrays = [ps.x, ps.pid, ps.x - ps.x0, ps.v]
+    buffers = [np.empty_like(a) for a in arrays]
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        for a, b in zip(arrays, buffers, strict=True):
+            np.copyto(b, a)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
     scene = load_scene(builtin_scene_path(name))
     sim = Simulator(scene, threads=threads)
     step_s = mpm_step_s(sim, mpm_steps)
+    floor = copy_floor_s(sim)
     n = sim.particles.n
     spacing = scene.particle_spacing_m
     bounds = ((0.0, 0.0, 0.0), tuple(map(float, scene.size_m)))
@@ -144,7 +163,7 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
             "chunk_s": round(chunk_s, 6), "stats_s": round(stats_s, 6),
             "sender_build_s": round(build_s, 6),
             "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
-            "mpm_step_s": round(step_s, 6),
+            "mpm_step_s": round(step_s, 6), "copy_floor_s": round(floor, 6),
             "due_publish_over_mpm_step": round(due_publish / step_s, 4),
             "threads": numba.get_num_threads(), "scene": name}
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from minority.render_server.assemble import AssembledStep, ChunkContext
+from minority.render_server.assemble import AssembledStep
 
 Schema = tuple[tuple[str, str, tuple[int, ...]], ...]  # (name, dtype, trailing shape) per field
 
@@ -42,7 +42,6 @@ class ParticleCache:
         self.rank = np.zeros(0, dtype=np.int32)
         self.step = np.zeros(0, dtype=np.int64)
         self.time_s = np.zeros(0, dtype=np.float64)
-        self.schema: Schema | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -68,10 +67,9 @@ class ParticleCache:
         schema = _schema(batch[0].fields)
         if any(_schema(c.fields) != schema for c in batch[1:]):
             batch = [c for c in batch if _schema(c.fields) == schema]  # ranks disagree: one wins
-        if self.schema is not None and schema != self.schema:
+        if self.fields and schema != _schema(self.fields):  # the field set changed
             self.schema_changes += bool(len(self))
             self._clear()
-        self.schema = schema
         ids = np.concatenate([c.ids for c in batch])
         take = None  # rows of the batch to add (None: all)
         if len(self):
@@ -85,7 +83,7 @@ class ParticleCache:
             a = np.concatenate(arrays)
             return a if take is None else a[take]
 
-        added = rows([c.ids for c in batch])
+        added = ids if take is None else ids[take]
         self.ids = np.concatenate([self.ids, added])
         self.positions = np.concatenate([self.positions, rows([c.positions for c in batch])])
         self.fields = {k: np.concatenate([self.fields[k], rows([c.fields[k] for c in batch])])
@@ -119,5 +117,3 @@ def complete_step(cache: ParticleCache, step: AssembledStep) -> AssembledStep:
     cache.apply(step)
     return cache.complete(step)
 
-
-__all__ = ["ChunkContext", "ParticleCache", "complete_step"]

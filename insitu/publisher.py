@@ -362,12 +362,14 @@ class RankPublisher(Sender):
 
     def publish(self, step: int, time_s: float, particles: Particles, spacing_m: float,
                 bounds_m: Bounds) -> bool:
-        """At a step `due` said yes to (it is asked here when the caller did not): queue
-        the Stats message if its cadence picked the step, then cull, encode and queue this
+        """At a step `due` said yes to (it is asked here when the caller did not): copy what
+        the step reads and queue the Stats message if its cadence picked the step and this
         rank's chunk if the spec schedules it (an empty one when no particle is in the
-        regions, so the server's step completes). spacing_m: the particle spacing (m; the
-        render radius follows it); bounds_m: the domain's corners (m). Returns whether a
-        chunk was scheduled. A second call for the same step sends nothing."""
+        regions, so the server's step completes); the sender thread culls and encodes them.
+        `due` refused them already when the outbox was full (only this thread queues chunks
+        and Stats, so it stays so). spacing_m: the particle spacing (m; the render radius
+        follows it); bounds_m: the domain's corners (m). Returns whether a chunk was
+        scheduled. A second call for the same step sends nothing."""
         if self._due is None or self._due[:2] != (step, time_s):
             self.due(step, time_s)
         _, _, prev, request, stats = self._due
@@ -376,8 +378,7 @@ class RankPublisher(Sender):
         # outbox: the sender wakes once the caller's copy is done, not in the middle of it
         names = (tuple(request.fields) if request is not None else ()) + (
             STATS_READS if stats else ())
-        shared = (particles.snapshot(names, self._pool)
-                  if request is not None and stats and not self._outbox.full(CHUNK) else None)
+        shared = particles.snapshot(names, self._pool) if request is not None and stats else None
         stats_item = self._stats_item(step, time_s, particles, shared) if stats else None
         if request is None:
             self._put_stats(stats_item)
@@ -388,12 +389,6 @@ class RankPublisher(Sender):
         for name in request.fields:
             if not particles.has(name):
                 self._missing(name, particles)
-        if self._outbox.full(CHUNK):  # the sender is behind: this step goes, at no cost
-            with self._lock:
-                self.stats.dropped_outbox += 1
-                self.stats.prepare_s += time.perf_counter() - t0
-            self._put_stats(stats_item)
-            return True
         snap = shared if shared is not None else particles.snapshot(request.fields, self._pool)
         spec = self.spec
 
@@ -472,18 +467,12 @@ class RankPublisher(Sender):
                     snap: Particles | None = None) -> OutboxItem | None:
         """This rank's Stats as an outbox item, computed and encoded on the sender thread
         from a snapshot (the spec's open regions at time_s; none while the spec is not
-        known). None, counted as dropped, without a velocity field or with the sender
-        behind (a full Stats queue)."""
+        known). None, counted as dropped, without a velocity field."""
         t0 = time.perf_counter()
         if not ("velocity" in p.fields or "velocity_magnitude" in p.fields):
             self._missing("velocity", p)
             with self._lock:
                 self.stats.stats_dropped += 1
-            return None
-        if self._outbox.full(STATS):
-            with self._lock:
-                self.stats.stats_dropped += 1
-                self.stats.stats_s += time.perf_counter() - t0
             return None
         spec = self.spec
         regions = () if spec is None else spec.active_regions(time_s)

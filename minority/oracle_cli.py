@@ -560,8 +560,9 @@ def _cmd_spec(args: argparse.Namespace) -> int:
 def _preview_parser(osub) -> None:
     q = command(osub, "preview", help="render a spec's views on a rollout (contact sheet)",
                 description="Render each view of the spec on the rollout's frames that its "
-                            "schedule selects (regions of interest applied), a row per view, "
-                            "and save one PNG to judge before the full run.")
+                            "schedule selects, every particle drawn as the run's server draws "
+                            "them (each label says how many the view's regions hold), a row "
+                            "per view, and save one PNG to judge before the full run.")
     q.add_argument("spec", type=Path, help="spec JSON (minority oracle spec, or edited)")
     q.add_argument("rollout", type=Path, help="rollout.h5 from minority oracle rollout")
     add_out(q, "contact sheet PNG", default=Path("preview.png"), metavar="FILE.png")

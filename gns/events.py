@@ -78,6 +78,27 @@ def fast_windows(time_s: np.ndarray, speed_scale_m_s: np.ndarray,
     return [(float(t[a]), float(t[b - 1])) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
+EVENT_NAMES = ("failure_onset", "runout_start", "peak_motion", "runout_end")
+
+
+def fast_start_s(e: Events, frame_interval_s: float) -> float:
+    """When the predicted runout starts, s: the first fast window's start (speed scale at
+    least half its peak), after the onset and no later than the peak; the peak when the run
+    has no fast window."""
+    t = np.arange(len(e.speed_scale_m_s)) * frame_interval_s
+    fast = fast_windows(t, e.speed_scale_m_s)
+    return min(max(fast[0][0], e.onset_s + frame_interval_s), e.peak_s) if fast else e.peak_s
+
+
+def event_times(e: Events, frame_interval_s: float) -> dict[str, float]:
+    """The events a spec names (EVENT_NAMES) and their times, s, as the oracle states them:
+    the runout start is the runout window's first frame after its one-frame pad."""
+    dt = frame_interval_s
+    return {"failure_onset": e.onset_s,
+            "runout_start": max(0.0, fast_start_s(e, dt) - dt) + dt,
+            "peak_motion": e.peak_s, "runout_end": e.runout_end_s}
+
+
 def _frames(positions: np.ndarray, frame_interval_s: float, t0: float, t1: float) -> slice:
     """The frames whose times lie in [t0, t1] (rounded outwards)."""
     k0 = max(int(np.floor(t0 / frame_interval_s)), 0)

@@ -11,18 +11,30 @@ segment gets frames in proportion to how fast the material moves then
 that move in it, so the simulation leaves static material out, and (occlusion_cull) the
 simulation sends only what each camera can see. The colormap range is the
 predicted displacement magnitude with a margin. Axes: x is the flow direction, z is up.
+
+An ensemble oracle (gns.ensemble: the nominal rollout and perturbed members) plans over
+all members at once: each event carries the interval the members' times span (widened by
+OracleOptions.interval_widen), the windows are the union of the members' windows and cover
+those intervals, the cadence follows the largest speed any member has at each frame, the
+regions hold every member's moving particles, the cameras frame every member's extent, and
+the spec carries the spread of the final deposit.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from minority.gns.ensemble import deposit_spread, event_intervals
 from minority.gns.events import (
+    EVENT_NAMES,
     MOVING_SPEED_FRACTION,
     Events,
     displacement_range,
+    event_times,
     extent,
+    fast_start_s,
     fast_windows,
     find_events,
     moving_points,
@@ -57,6 +69,10 @@ class OracleOptions:
     speed_power: float = 4.0  # frames per segment in proportion to the integral of speed^p
     colormap: str = "Viridis (matplotlib)"
     occlusion_cull: bool = True  # the sim sends only particles a view's camera can see
+    # an ensemble's intervals: the members' range [min, max] widened on each side by this
+    # fraction of the range plus interval_pad_frames frame intervals (gns.ensemble)
+    interval_widen: float = 0.0
+    interval_pad_frames: float = 1.0
 
     def __post_init__(self) -> None:
         if self.frames < 2 * len(VIEWS):
@@ -114,7 +130,11 @@ class Oracle:
     """The analysis of one rollout and the spec it implies."""
 
     def __init__(self, positions: np.ndarray, frame_interval_s: float, bounds_m: np.ndarray,
-                 spacing_m: float, options: OracleOptions | None = None):
+                 spacing_m: float, options: OracleOptions | None = None,
+                 members: Sequence[np.ndarray] = ()):
+        """positions [frames, n, 3] (m): the prediction (an ensemble's nominal member);
+        members: the ensemble's other members, each [frames, n, 3] (m) like positions
+        (none: a single-rollout oracle, as before ensembles)."""
         self.positions = np.asarray(positions, dtype=np.float64)
         self.dt = float(frame_interval_s)
         self.bounds = np.asarray(bounds_m, dtype=np.float64).reshape(3, 2)
@@ -125,14 +145,45 @@ class Oracle:
         self.scale = self.events.speed_scale_m_s  # [frames] m/s, at the frames' times
         self.threshold = MOVING_SPEED_FRACTION * self.events.peak_speed_m_s
         self.displacement = displacement_range(self.positions)
+        for k, m in enumerate(members):
+            if np.shape(m) != self.positions.shape:
+                raise ValueError(f"ensemble member {k + 1} is {list(np.shape(m))}, the "
+                                 f"prediction {list(self.positions.shape)}: members must have "
+                                 "the prediction's frames and particles")
+        # the ensemble: this oracle first, then one per member (each its own analysis)
+        self.each = [self] + [Oracle(m, frame_interval_s, bounds_m, spacing_m, self.o)
+                              for m in members]
+        self.intervals = (event_intervals(
+            [event_times(o.events, self.dt) for o in self.each], self.o.interval_widen,
+            self.o.interval_pad_frames * self.dt, self.events.duration_s)
+            if members else {})
+        # the largest speed scale any member has at each frame, m/s: where frames go
+        self.envelope = np.max([o.scale for o in self.each], axis=0)
+        self.travel_m = max(o.displacement[1] for o in self.each)  # the farthest any moves
 
     # --- windows --------------------------------------------------------------------
     def windows(self) -> dict[str, tuple[float, float]]:
         """Initiation: onset to the fastest motion (the column failing); runout: from the
-        start of the fast phase to rest (both padded by a frame, within the rollout)."""
+        start of the fast phase to rest (both padded by a frame, within the rollout). An
+        ensemble's: the union over its members, widened to cover the events' intervals
+        (the initiation's from the onset's earliest to the peak's latest, the runout's from
+        the runout start's earliest to the runout end's latest)."""
+        own = self._own_windows()
+        if len(self.each) == 1:
+            return own
+        out = {}
+        for phase, (first, last) in {"initiation": ("failure_onset", "peak_motion"),
+                                     "runout": ("runout_start", "runout_end")}.items():
+            w = [o._own_windows()[phase] for o in self.each]
+            lo = min(min(a for a, _ in w), self.intervals[first][0] - self.dt)
+            hi = max(max(b for _, b in w), self.intervals[last][1] + self.dt)
+            out[phase] = (max(0.0, lo), min(hi, self.events.duration_s))
+        return out
+
+    def _own_windows(self) -> dict[str, tuple[float, float]]:
+        """This trajectory's windows alone (windows() of a single rollout)."""
         e = self.events
-        fast = fast_windows(self.time, self.scale)
-        fast_start = min(max(fast[0][0], e.onset_s + self.dt), e.peak_s) if fast else e.peak_s
+        fast_start = fast_start_s(e, self.dt)
         end = max(e.runout_end_s, fast_start + self.dt)
         pad = self.dt
         failing = max(e.peak_s, e.onset_s + self.dt)  # an early kinetic-energy spike aside
@@ -143,10 +194,13 @@ class Oracle:
         """[3, 2] boxes (m) holding the particles moving in [t0, t1]: one per slab along the
         flow (x), hugging the moving material so that the static base stays out; padded, the
         front one ahead by a share of the travel, within the domain; the whole domain if
-        nothing moves."""
-        pts = moving_points(self.positions, self.dt, t0, t1, self.threshold)
-        if pts is None:
+        nothing moves. An ensemble's hold every member's moving particles (each member's
+        own moving threshold), ahead of the farthest travel."""
+        found = [moving_points(o.positions, self.dt, t0, t1, o.threshold) for o in self.each]
+        found = [p for p in found if p is not None]
+        if not found:
             return [self.bounds.copy()]
+        pts = np.concatenate(found)
         pad = self.o.roi_pad_m + self.spacing
         edges = np.linspace(pts[:, 0].min(), pts[:, 0].max(), self.o.roi_slabs + 1)
         slab = np.clip(np.searchsorted(edges, pts[:, 0], side="right") - 1, 0,
@@ -156,32 +210,44 @@ class Oracle:
             p = pts[slab == j]
             if len(p):
                 boxes.append(np.stack([p.min(axis=0) - pad, p.max(axis=0) + pad], axis=1))
-        travel = self.displacement[1]
+        travel = self.travel_m
         boxes[-1][0, 1] += self.o.roi_front_pad * travel  # x: the flow direction
         boxes[-1][2, 1] += self.o.roi_front_pad * travel * 0.5  # z: heaving ahead of the front
         return [np.clip(b, self.bounds[:, :1], self.bounds[:, 1:]) for b in boxes]
 
     def fast_phase(self) -> tuple[float, float] | None:
         """The predicted fast phase (speed scale >= half its peak; the longest if several),
-        s."""
+        s; an ensemble's spans its members' (earliest start to latest end)."""
+        phases = [p for p in (o._own_fast_phase() for o in self.each) if p is not None]
+        if not phases:
+            return None
+        return min(a for a, _ in phases), max(b for _, b in phases)
+
+    def _own_fast_phase(self) -> tuple[float, float] | None:
         fast = fast_windows(self.time, self.scale)
         return max(fast, key=lambda w: w[1] - w[0]) if fast else None
 
     def framed(self, phase: str) -> np.ndarray:
         """[3, 2] box (m) a view of the phase frames: the column over the initiation; the
-        predicted final deposit (the last frame at the end of the runout) for the runout."""
+        predicted final deposit (the last frame at the end of the runout) for the runout;
+        an ensemble's frames every member's."""
         if phase == "initiation":
-            return extent(self.positions, self.dt, *self.windows()["initiation"])
-        end = self.events.runout_end_s
-        return extent(self.positions, self.dt, end, end)
+            t0, t1 = self.windows()["initiation"]
+            boxes = [extent(o.positions, self.dt, t0, t1) for o in self.each]
+        else:
+            boxes = [extent(o.positions, self.dt, o.events.runout_end_s, o.events.runout_end_s)
+                     for o in self.each]
+        return np.stack([np.min([b[:, 0] for b in boxes], axis=0),
+                         np.max([b[:, 1] for b in boxes], axis=0)], axis=1)
 
     def weight(self, t0: float, t1: float) -> float:
         """How fast the material moves in [t0, t1]: the integral of the speed scale raised to
         `speed_power` (2 would follow the kinetic energy; 4, the default, spends the frames
         more sharply where motion is fastest: on the showcase 111 of 117 frames fall inside
-        the predicted fast phase against 105 with 2, each segment keeping at least one)."""
+        the predicted fast phase against 105 with 2, each segment keeping at least one). An
+        ensemble's follows the largest speed scale of any member at each frame."""
         inside = (self.time >= t0) & (self.time <= t1)
-        return float((self.scale[inside] ** self.o.speed_power).sum() * self.dt) \
+        return float((self.envelope[inside] ** self.o.speed_power).sum() * self.dt) \
             if inside.any() else 0.0
 
     # --- the spec ---------------------------------------------------------------------
@@ -205,7 +271,7 @@ class Oracle:
                     boxes.setdefault(f"{phase}_{k}", []).append((name, box))
             schedules[phase] = segs
         per_view = _allocate(np.ones(len(VIEWS)), o.frames)
-        hi_d = max(self.displacement[1], self.spacing)  # a colormap range, even at rest
+        hi_d = max(self.travel_m, self.spacing)  # a colormap range, even at rest
         out_views = []
         for (name, phase, direction, up), budget in zip(VIEWS, per_view, strict=True):
             # segment k renders f_k + 1 instants, its last one shared with segment k + 1: at
@@ -227,20 +293,20 @@ class Oracle:
                 "schedule": [{"t_start_s": a, "t_end_s": b, "every_s": (b - a) / int(f),
                               "regions": [n for n, _ in wb]}
                              for (a, b), f, wb in zip(segs, share, windows_boxes, strict=True)]})
-        e = self.events
-        tol = lambda t: max(0.1 * t, self.dt)  # noqa: E731 - the events' stated tolerance
-        spec = Spec.from_dict({
-            "version": SPEC_VERSION, "run": o.run, "views": out_views, "regions": regions,
-            "events": [{"name": "failure_onset", "time_s": e.onset_s, "tolerance_s": tol(e.onset_s)},
-                       {"name": "runout_start", "time_s": windows["runout"][0] + self.dt,
-                        "tolerance_s": tol(windows["runout"][0] + self.dt)},
-                       {"name": "peak_motion", "time_s": e.peak_s, "tolerance_s": tol(e.peak_s)},
-                       {"name": "runout_end", "time_s": e.runout_end_s,
-                        "tolerance_s": tol(e.runout_end_s)}],
-            "budget": {"frames": o.frames, "bytes": None},
-            "provenance": {"oracle": ORACLE_VERSION, **(provenance or {}),
-                           "predicted": self.summary()}})
-        return spec
+        events = []
+        for name, t in event_times(self.events, self.dt).items():
+            event = {"name": name, "time_s": t, "tolerance_s": max(0.1 * t, self.dt)}
+            if name in self.intervals:
+                event["earliest_s"], event["latest_s"] = self.intervals[name]
+            events.append(event)
+        doc = {"version": SPEC_VERSION, "run": o.run, "views": out_views, "regions": regions,
+               "events": events, "budget": {"frames": o.frames, "bytes": None},
+               "provenance": {"oracle": ORACLE_VERSION, **(provenance or {}),
+                              "predicted": self.summary()}}
+        if len(self.each) > 1:
+            doc["deposit"] = deposit_spread([o.positions for o in self.each],
+                                            o.interval_widen)
+        return Spec.from_dict(doc)
 
     def summary(self) -> dict:
         """What the spec's choices rest on (JSON-ready), for the score and for a person."""
@@ -251,4 +317,15 @@ class Oracle:
                 "displacement_range_m": list(self.displacement),
                 "fast_windows_s": [list(w) for w in fast_windows(self.time, self.scale)],
                 "windows_s": {k: list(v) for k, v in self.windows().items()},
-                "particles": int(self.positions.shape[1]), "frame_interval_s": self.dt}
+                "particles": int(self.positions.shape[1]), "frame_interval_s": self.dt,
+                **({"ensemble": self.ensemble_summary()} if len(self.each) > 1 else {})}
+
+    def ensemble_summary(self) -> dict:
+        """Each member's event times (s) and the intervals the spec states (JSON-ready)."""
+        times = [event_times(o.events, self.dt) for o in self.each]
+        return {"members": len(self.each),
+                "interval_widen": self.o.interval_widen,
+                "interval_pad_s": self.o.interval_pad_frames * self.dt,
+                "event_times_s": {n: [t[n] for t in times] for n in EVENT_NAMES},
+                "intervals_s": {n: list(v) for n, v in self.intervals.items()},
+                "windows_s": {k: list(v) for k, v in self.windows().items()}}

@@ -491,7 +491,61 @@ def _spec_parser(osub) -> None:
                         "`minority serve --shadows`: hidden particles cast shadows)")
     q.add_argument("--pvcc", type=Path, metavar="DIR",
                    help="also write each view's camera as DIR/{view}.pvcc for ParaView")
+    e = q.add_argument_group(
+        "ensemble (an oracle that states its uncertainty; gns/ensemble.py, docs/oracle.md)",
+        "With --ensemble K > 1 the rollout's checkpoint (named in the rollout file) rolls "
+        "the scene out K - 1 more times from perturbed starts (each a rollout's cost: about "
+        "20 s at 1,600 particles on 2 cores); each event gets the interval [earliest_s, "
+        "latest_s] its members span, widened by --widen; windows, cadences and regions "
+        "cover every member; the spec's `deposit` holds each member's front, height and "
+        "largest displacement and their band.")
+    e.add_argument("--ensemble", type=_members, default=1, metavar="K",
+                   help="members, the rollout itself included (1: the single rollout)")
+    e.add_argument("--perturb", choices=["jitter", "friction", "both"], default="both",
+                   help="what the other members change: the start positions (jitter, 0.1 "
+                        "particle spacing per axis), the friction angle (within +-2 deg), "
+                        "or alternately one and the other")
+    e.add_argument("--widen", type=float, default=1.0, metavar="W",
+                   help="widen each interval and band on each side by W times the members' "
+                        "range (intervals also by one frame interval)")
+    e.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.set_defaults(func=_cmd_spec)
+
+
+def _members(text: str) -> int:
+    """--ensemble K: a whole number of members, at least 1 (a usage error otherwise)."""
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number of members >= 1")
+    return k
+
+
+def _ensemble_members(r: dict, args: argparse.Namespace) -> tuple[list, dict]:
+    """The --ensemble's other members of rollout r ([frames, n, 3] m each, started from the
+    rollout's own first C + 1 frames, perturbed) and what the provenance records of them.
+    Raises ValueError (bad input: no checkpoint, no friction angle), CheckpointError,
+    RolloutError, OSError."""
+    import numpy as np
+
+    from minority.gns.ensemble import EnsembleOptions, perturbed_starts, roll_members
+
+    if not r.get("checkpoint") or r.get("friction_angle_deg") is None:
+        raise ValueError("--ensemble needs a GNS rollout (from minority oracle rollout), "
+                         "whose file names its checkpoint and friction angle")
+    args.checkpoint = Path(str(r["checkpoint"]))
+    model, _ = _load_for_cpu(args)
+    c1 = model.config.input_velocities + 1
+    o = EnsembleOptions(members=args.ensemble, perturb=args.perturb)
+    starts = perturbed_starts(r["positions"][:c1], float(r["friction_angle_deg"]),
+                              float(r["particle_spacing_m"]), o)
+    trajs, labels = roll_members(model, starts[1:], np.asarray(r["bounds_m"]),
+                                 len(r["positions"]) - c1, log=sys.stderr, required=0)
+    return trajs, {"members": 1 + len(trajs), "perturb": o.perturb, "jitter_spacings": o.jitter,
+                   "friction_spread_deg": o.friction_deg, "seed": o.seed, "widen": args.widen,
+                   "perturbed": labels}
 
 
 def default_run(rollout: dict) -> str:
@@ -527,14 +581,26 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     except (SceneError, OSError) as exc:
         return _fail("spec", f"{exc}: pass --run (the run id of the sim the spec is for)",
                      BAD_INPUT)
+    members, ensemble = [], {}
+    if args.ensemble > 1:
+        from minority.gns.rollout import RolloutError
+
+        try:
+            members, ensemble = _ensemble_members(r, args)
+        except (ValueError, KeyError) as exc:  # CheckpointError, a rollout without its names
+            return _fail("spec", exc, BAD_INPUT)
+        except (RolloutError, OSError) as exc:
+            return _fail("spec", exc, FAILED)
     try:
         options = replace(OracleOptions(), run=run, frames=args.frames, width=args.width,
                           height=args.height, segments=args.segments, margin=args.margin,
-                          occlusion_cull=not args.no_occlusion_cull)
+                          occlusion_cull=not args.no_occlusion_cull,
+                          interval_widen=args.widen)
         oracle = Oracle(r["positions"], float(r["frame_interval_s"]), r["bounds_m"],
-                        float(r["particle_spacing_m"]), options)
+                        float(r["particle_spacing_m"]), options, members=members)
         spec = oracle.spec({"rollout": str(args.rollout), "checkpoint": str(r.get("checkpoint")),
-                            "scene": str(r.get("scene"))})
+                            "scene": str(r.get("scene")),
+                            **({"ensemble": ensemble} if ensemble else {})})
     except (ValueError, SpecError, KeyError) as exc:
         return _fail("spec", exc, BAD_INPUT)
     try:
@@ -546,6 +612,16 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     print(f"oracle: onset {p['onset_s']:.3f} s, peak motion {p['peak_s']:.3f} s, runout end "
           f"{p['runout_end_s']:.3f} s; displacement 0-{p['displacement_range_m'][1]:.3f} m",
           file=sys.stderr)
+    for e in spec.events:
+        if e.interval_s is not None:
+            print(f"  {e.name}: {e.time_s:.3f} s, ensemble of {len(oracle.each)}: "
+                  f"{e.earliest_s:.3f}-{e.latest_s:.3f} s", file=sys.stderr)
+    if spec.deposit is not None:
+        d = spec.deposit
+        print(f"  deposit: front {d.runout_m.low:.3f}-{d.runout_m.high:.3f} m, height "
+              f"{d.height_m.low:.3f}-{d.height_m.high:.3f} m, displacement max "
+              f"{d.displacement_max_m.low:.3f}-{d.displacement_max_m.high:.3f} m",
+              file=sys.stderr)
     for v in spec.views:
         print(f"  view {v.name}: {v.t_start_s:.3f}-{v.t_end_s:.3f} s in {len(v.schedule)} windows, "
               f"every {', '.join(f'{w.every_s * 1e3:.1f}' for w in v.schedule)} ms",

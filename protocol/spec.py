@@ -11,9 +11,11 @@ regions that exist, ...) are the from_document methods'.
   RGBPoints) and range, decimation, and a schedule of time windows, each with a cadence
   and the regions of interest it needs;
 - regions: named axis-aligned boxes the windows refer to;
-- events: what the oracle predicts and when (name, time, tolerance);
+- events: what the oracle predicts and when (name, time, tolerance; an ensemble oracle adds
+  the interval its members span, earliest_s..latest_s);
 - budget: frames and bytes the schedule was planned within;
-- provenance: free-form notes on where the spec came from (checkpoint, rollout, edits).
+- provenance: free-form notes on where the spec came from (checkpoint, rollout, edits);
+- deposit (optional): an ensemble oracle's predicted final deposit, per member and as a band.
 
 `Spec.request(step, time_s, prev_time_s)` says what the simulation must send at a step: the union
 of the fields and regions of the views due then, decimated by the views' common stride.
@@ -52,8 +54,8 @@ ID_FIELD = "id"  # particle ids, sent when views due at one step decimate differ
 MAX_SPEC_FILE_BYTES = 4 * MAX_HEADER_BYTES
 MAX_INT_DIGITS = 19  # decimal digits of a JSON integer: int64 (budget.bytes is the largest)
 
-__all__ = ["Budget", "Camera", "DataRequest", "InlineColormap", "PredictedEvent", "Region",
-           "Spec", "View", "Window"]
+__all__ = ["Budget", "Camera", "DataRequest", "DepositSpread", "InlineColormap",
+           "PredictedEvent", "Region", "Spec", "Spread", "View", "Window"]
 
 
 class Region(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -90,11 +92,72 @@ def inside_mask(x: np.ndarray, regions: tuple[Region, ...]) -> np.ndarray:
 
 
 class PredictedEvent(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """Something the oracle expects at `time_s` (s), give or take `tolerance_s`."""
+    """Something the oracle expects at `time_s` (s), give or take `tolerance_s`; an
+    ensemble oracle adds the interval [earliest_s, latest_s] (s) its members' times span
+    (widened as the oracle states in its provenance). Both bounds or neither; a spec
+    without them encodes as before they existed."""
 
     name: Name
     time_s: NonNegative
     tolerance_s: NonNegative = 0.0
+    earliest_s: NonNegative | None = None
+    latest_s: NonNegative | None = None
+
+    def checked(self, where: str) -> PredictedEvent:
+        if (self.earliest_s is None) != (self.latest_s is None):
+            raise SpecError(f"{where}: earliest_s and latest_s come together (got only "
+                            f"{'earliest_s' if self.latest_s is None else 'latest_s'})")
+        if self.earliest_s is not None and self.earliest_s > self.latest_s:
+            raise SpecError(f"{where}: earliest_s {self.earliest_s} exceeds latest_s "
+                            f"{self.latest_s}")
+        return self
+
+    @property
+    def interval_s(self) -> tuple[float, float] | None:
+        """(earliest, latest), s; None for an event without an interval."""
+        return None if self.earliest_s is None else (self.earliest_s, self.latest_s)
+
+    def to_dict(self) -> dict:
+        d = check.to_json(self)
+        if self.earliest_s is None:  # the interval is optional: old specs stay byte-identical
+            del d["earliest_s"], d["latest_s"]
+        return d
+
+
+class Spread(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One measure of the predicted deposit over an ensemble: each member's value and the
+    band [low, high] the oracle states (the members' range, widened as its provenance
+    says)."""
+
+    low: float
+    high: float
+    members: Annotated[tuple[float, ...], msgspec.Meta(min_length=1)]
+
+    def checked(self, where: str) -> Spread:
+        if not all(math.isfinite(v) for v in (self.low, self.high, *self.members)):
+            raise SpecError(f"{where}: values must be finite")
+        if self.low > self.high:
+            raise SpecError(f"{where}: low {self.low} exceeds high {self.high}")
+        return self
+
+
+class DepositSpread(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """The final deposit an ensemble oracle predicts, m (gns.metrics.deposit): the front
+    (runout, from the back wall x = 0), the height (from the floor) and the largest
+    displacement, each per member and as a band."""
+
+    runout_m: Spread
+    height_m: Spread
+    displacement_max_m: Spread
+
+    def checked(self, where: str) -> DepositSpread:
+        counts = set()
+        for name in ("runout_m", "height_m", "displacement_max_m"):
+            counts.add(len(getattr(self, name).checked(f"{where}.{name}").members))
+        if len(counts) != 1:
+            raise SpecError(f"{where}: every measure needs one value per member (got "
+                            f"{sorted(counts)} values)")
+        return self
 
     def to_dict(self) -> dict:
         return check.to_json(self)
@@ -122,6 +185,7 @@ class SpecDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     events: tuple[PredictedEvent, ...] = ()
     budget: Budget | None = None
     provenance: dict = {}
+    deposit: DepositSpread | None = None
 
 
 @dataclass(frozen=True)
@@ -153,6 +217,7 @@ class Spec:
     events: tuple[PredictedEvent, ...] = ()
     budget: Budget = Budget()
     provenance: dict = field(default_factory=dict, compare=False)
+    deposit: DepositSpread | None = None  # an ensemble oracle's predicted deposit spread
     sent_ns: int = field(default=0, compare=False)
 
     @property
@@ -212,6 +277,8 @@ class Spec:
         d["budget"] = self.budget.to_dict()
         if self.provenance:
             d["provenance"] = self.provenance
+        if self.deposit is not None:  # optional: a spec without it encodes as before
+            d["deposit"] = self.deposit.to_dict()
         return d
 
     @classmethod
@@ -249,9 +316,12 @@ class Spec:
                         raise SpecError(f"views[{i}].schedule[{k}].regions[{j}]: no region named "
                                         f"{name!r} (regions: {region_names})")
         _unique([e.name for e in s.events], "events: event names")
+        events = tuple(e.checked(f"events[{i}]") for i, e in enumerate(s.events))
+        deposit = s.deposit.checked("deposit") if s.deposit is not None else None
         return cls(run=s.run, views=views, version=SPEC_VERSION,
-                   sphere_radius_m=s.sphere_radius_m, regions=regions, events=s.events,
-                   budget=s.budget or Budget(), provenance=s.provenance, sent_ns=sent_ns)
+                   sphere_radius_m=s.sphere_radius_m, regions=regions, events=events,
+                   budget=s.budget or Budget(), provenance=s.provenance, deposit=deposit,
+                   sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:

@@ -3,7 +3,9 @@
 Each sphere's screen footprint is bounded exactly (tangent lines of the perspective
 projection, or its extent in parallel projection) plus a rounding margin; within it, the ray
 of every pixel center is intersected with the sphere exactly and the nearest hit wins
-(ties: lowest particle index, as in the brute-force reference). Spheres are binned into
+(ties: lowest particle index, as in the brute-force reference, or lowest key when the caller
+gives each particle a key: a distributed render passes the particles' global rows, so every
+rank breaks ties as the one-process render of all of them does). Spheres are binned into
 image row bands by a counting sort; bands are disjoint, so threads never write the same
 pixel. Work is linear in the particle count and in the footprint area, not in pixels times
 traversal depth. Rays are the ones of `camera.primary_rays`, computed by the same code.
@@ -23,6 +25,7 @@ BANDS_PER_WORKER = 8  # fewer, taller bands: fewer spheres listed twice (A/B: 1M
 DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; not correctness)
 CHUNKS_PER_WORKER = 4  # particle chunks per thread in the binning passes
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
+NO_KEYS = np.empty(0, np.int64)  # ties by particle index
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -101,9 +104,18 @@ def _bin_fill(positions, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, 
                     rec_c[r, 2] = positions[p, 2]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _before(keys, p, other):
+    """Whether particle p wins a tie at equal distance against particle `other`: the lower
+    key, or the lower index when keys is empty."""
+    if keys.shape[0] == 0:
+        return p < other
+    return keys[p] < keys[other]
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, rec_box, rec_z,
-                rec_c, n_workers, hit_t, hit_id):
+                rec_c, n_workers, keys, hit_t, hit_id):
     for w in prange(n_workers):
         for band in range(w, n_bands, n_workers):  # interleaved: balanced across workers
             row0, row1 = band * band_rows, min((band + 1) * band_rows, height) - 1
@@ -146,7 +158,7 @@ def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, re
                             t = (-b + s) / a
                         if t < 0.0:
                             continue
-                        if t < hit_t[q] or (t == hit_t[q] and p < hit_id[q]):
+                        if t < hit_t[q] or (t == hit_t[q] and _before(keys, p, hit_id[q])):
                             hit_t[q], hit_id[q] = t, p
 
 
@@ -167,14 +179,15 @@ def _clear(hit_t, hit_id, height, width):
 
 def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, height: int,
          box: np.ndarray | None = None, metres: bool = True,
-         out: tuple[np.ndarray, np.ndarray] | None = None, out_clear: bool = False
-         ) -> tuple[np.ndarray, np.ndarray]:
+         out: tuple[np.ndarray, np.ndarray] | None = None, out_clear: bool = False,
+         keys: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Closest sphere hit per pixel, row-major from the top left: distances [h * w] and
     particle ids [h * w] (-1 where nothing is hit; distance inf). Distances are in m, or with
     metres=False the camera depth of the hit (m along the view direction, the parameter of
     `pixel_ray_unnormalized`). box [2, 3] (m) bounds the positions if known; `out` reuses
     (float64 [h * w], int32 [h * w]) buffers across frames; with out_clear they already hold
-    inf and -1 everywhere (the renderer's shading pass leaves them so)."""
+    inf and -1 everywhere (the renderer's shading pass leaves them so). keys [n] int64, if
+    given, break ties at equal distance (lowest key wins) instead of the particle index."""
     pos = as_positions(positions)
     n = len(pos)
     if box is None:
@@ -205,8 +218,12 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     hit_t, hit_id = out
     if not out_clear:
         _clear(hit_t, hit_id, height, width)
+    if keys is None:
+        keys = NO_KEYS
+    elif keys.shape != (n,) or keys.dtype != np.int64:
+        raise ValueError(f"keys must be int64 [{n}], got {keys.dtype} {keys.shape}")
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
-                rec_box, rec_z, rec_c, n_workers, hit_t, hit_id)
+                rec_box, rec_z, rec_c, n_workers, keys, hit_t, hit_id)
     if metres:
         _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id

@@ -20,7 +20,7 @@ from minority.protocol.spec import View
 from minority.render_server.accel import BrickGrids, build_grids
 from minority.render_server.bricks import Bricks, as_positions, repartition
 from minority.render_server.camera import pixel_ray, pixel_ray_unnormalized, primary_rays, ray_frame
-from minority.render_server.cast import cast
+from minority.render_server.cast import NO_KEYS, cast
 from minority.render_server.colormap import view_colormap
 from minority.render_server.trace import trace
 from numba import njit, prange
@@ -34,6 +34,7 @@ SHADOW_OFFSET_RADII = 1e-3  # shadow rays start this far off the surface, in sph
 BRICKS_PER_THREAD = 4
 PARTICLES_PER_BRICK_MIN = 16_384  # below this, splitting costs more setup than it saves
 PNG_COMPRESS_LEVEL = 1  # zlib level: fast, still lossless
+NO_KEY = np.iinfo(np.int64).max  # depth capture: the key of a pixel nothing covers
 
 
 @dataclass
@@ -153,12 +154,31 @@ class Canvas:
         self.hit = np.zeros(width * height, np.bool_)  # the last render: particle at pixel
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _capture(hit_t, hit_id, keys, height, width, depth, key):
+    """Copy the hit depths and the winning particles' keys (index when keys is empty;
+    NO_KEY where nothing is hit) before shading clears the hit buffers."""
+    for j in prange(height):
+        for q in range(j * width, (j + 1) * width):
+            p = hit_id[q]
+            depth[q] = hit_t[q]
+            key[q] = NO_KEY if p < 0 else (keys[p] if keys.shape[0] else p)
+
+
 def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
-           canvas: Canvas | None = None) -> np.ndarray:
+           canvas: Canvas | None = None, keys: np.ndarray | None = None,
+           depth: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The image [height, width, 3] uint8 of `view` (a view of the canvas's buffer, valid until
     the canvas renders again): spheres colored by `field` ([n] values,
     or [n, k] vectors by magnitude, computed only for visible particles) with the
-    view's colormap and range, Lambert + ambient shading, optional shadows."""
+    view's colormap and range, Lambert + ambient shading, optional shadows.
+
+    For sort-last compositing (render_server.composite): keys [n] int64 break ties at equal
+    depth (lowest key wins; default the particle index), and `depth`, a pair of buffers
+    (float64 [h * w], int64 [h * w]), receives each pixel's hit depth (m along the view
+    direction, inf where nothing is hit) and its particle's key (NO_KEY where none)."""
+    if depth is not None and shadows:
+        raise ValueError("depth capture is for compositing, which does not draw shadows")
     frame = ray_frame(view.camera, view.width, view.height)
     box = np.array([scene.bricks.boxes[:, 0].min(axis=0), scene.bricks.boxes[:, 1].max(axis=0)])
     if canvas is None or canvas.size != (view.width, view.height):
@@ -166,7 +186,9 @@ def render(scene: Scene, field: np.ndarray, view: View, shadows: bool = False,
     clear, canvas.clear = canvas.clear, False  # until shading has cleared them again
     t, ids = cast(scene.positions, scene.radius, frame, view.width, view.height, box,
                   metres=shadows,  # shadow rays start from metric hit points
-                  out=(canvas.hit_t, canvas.hit_id), out_clear=clear)
+                  out=(canvas.hit_t, canvas.hit_id), out_clear=clear, keys=keys)
+    if depth is not None:
+        _capture(t, ids, NO_KEYS if keys is None else keys, view.height, view.width, *depth)
     light = key_light(view)
     shadowed = _shadow_mask(scene, view, t, ids, light) if shadows else canvas.unshadowed
     cmap = view_colormap(view.colormap)

@@ -67,9 +67,13 @@ def score(spec: Spec, run: FlowRecord) -> dict:
         err = e.time_s - a
         # 10 % of the actual time, but never finer than the stats cadence that measures it
         tol = max(EVENT_TOLERANCE * a, interval)
-        events.append({"event": e.name, "predicted_s": e.time_s, "actual_s": a, "error_s": err,
-                       "relative_error": err / a if a > 0 else None, "tolerance_s": tol,
-                       "within_tolerance": abs(err) <= tol})
+        row = {"event": e.name, "predicted_s": e.time_s, "actual_s": a, "error_s": err,
+               "relative_error": err / a if a > 0 else None, "tolerance_s": tol,
+               "within_tolerance": abs(err) <= tol}
+        if e.interval_s is not None:  # an ensemble oracle's interval: did the run fall in it
+            row.update(interval_s=list(e.interval_s),
+                       within_interval=e.earliest_s - interval <= a <= e.latest_s + interval)
+        events.append(row)
     predicted = spec.provenance.get("predicted", {})
     pred_disp = (predicted.get("displacement_range_m") or [0.0, float("nan")])[1]
     threshold = MOVING_SPEED_FRACTION * actual.peak_speed_m_s
@@ -85,8 +89,12 @@ def score(spec: Spec, run: FlowRecord) -> dict:
                     if run.chunk_steps else 0.0)
     every_particle = sum(run.particles * b for _, b in run.chunk_steps.values())
     fixed_bytes = int(np.ceil(n_frames / views) * run.particles * per_particle)
+    band = spec.deposit.displacement_max_m if spec.deposit is not None else None
     return {
         "events": events,
+        **({"displacement_band_m": {"band": [band.low, band.high],
+                                    "within": band.low <= run.max_displacement_m <= band.high}}
+           if band is not None else {}),
         "displacement_max_m": {"predicted": pred_disp, "actual": run.max_displacement_m,
                                "relative_error": (pred_disp - run.max_displacement_m)
                                / run.max_displacement_m if run.max_displacement_m > 0
@@ -119,17 +127,28 @@ def markdown(result: dict) -> str:
     for n in result.get("log", {}).get("notes", []):
         lines += [f"**Log {n['kind']}**: {n['detail']}. The score covers those messages only.",
                   ""]
+    ens = any("interval_s" in e for e in result["events"])
     lines += ["| event | predicted (s) | actual (s) | error | "
-              "within 10 % (at least one stats interval) |", "|---|---|---|---|---|"]
+              "within 10 % (at least one stats interval) |"
+              + (" inside the ensemble's interval (s) |" if ens else ""),
+              "|---|---|---|---|---|" + ("---|" if ens else "")]
     for e in result["events"]:
+        cell = ""
+        if ens:
+            cell = (f" {'yes' if e['within_interval'] else 'no'} ({e['interval_s'][0]:.3f}-"
+                    f"{e['interval_s'][1]:.3f}) |" if "interval_s" in e else " n/a |")
         lines.append(f"| {e['event']} | {e['predicted_s']:.3f} | {e['actual_s']:.3f} | "
                      f"{_pct(e['relative_error'])} ({e['error_s'] * 1e3:+.0f} ms) | "
                      f"{'yes' if e['within_tolerance'] else 'no'} "
-                     f"(±{e['tolerance_s'] * 1e3:.1f} ms) |")
+                     f"(±{e['tolerance_s'] * 1e3:.1f} ms) |" + cell)
     d, f, b = result["displacement_max_m"], result["frames"], result["bytes"]
     roi = result["roi_moving_fraction"]
     lines += ["", f"- displacement max: predicted {d['predicted']:.3f} m, actual "
-                  f"{d['actual']:.3f} m ({_pct(d['relative_error'])})",
+                  f"{d['actual']:.3f} m ({_pct(d['relative_error'])})"
+              + ("" if "displacement_band_m" not in result else
+                 f"; the ensemble's band {result['displacement_band_m']['band'][0]:.3f}-"
+                 f"{result['displacement_band_m']['band'][1]:.3f} m: "
+                 + ("inside" if result["displacement_band_m"]["within"] else "outside")),
               f"- moving particles (faster than {result['moving_speed_m_s']:.3f} m/s) inside the "
               f"regions of interest: " + ("n/a" if roi is None else f"{100 * roi:.2f}%"),
               "- critical windows (speed >= half its peak): "

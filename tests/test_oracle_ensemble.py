@@ -249,3 +249,28 @@ def test_cli_spec_ensemble_on_a_tiny_rollout(tmp_path, capsys):
     assert not (tmp_path / "bad.json").exists()
     with pytest.raises(SystemExit):
         main(["oracle", "spec", str(tmp_path / "rollout.h5"), "--ensemble", "0"])
+
+
+def test_score_says_whether_the_run_fell_inside_the_intervals(tmp_path):
+    from test_score import make_spec as scored_spec
+    from test_score import write_log
+
+    from minority.score import load_run, markdown, score
+
+    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20))
+    d = scored_spec().to_dict()
+    d["events"][0].update(earliest_s=0.20, latest_s=0.25)  # the run's onset is ~0.13 s
+    d["events"][1].update(earliest_s=0.28, latest_s=0.40)  # its peak ~0.30 s
+    spread = {"low": 0.25, "high": 0.35, "members": [0.3]}
+    d["deposit"] = {"runout_m": spread, "height_m": spread, "displacement_max_m": spread}
+    result = score(Spec.from_dict(d), load_run(tmp_path / "run.mcap"))
+    ev = {e["event"]: e for e in result["events"]}
+    assert not ev["failure_onset"]["within_interval"] and ev["peak_motion"]["within_interval"]
+    assert "within_interval" not in ev["runout_end"]  # no interval stated
+    assert result["displacement_band_m"] == {"band": [0.25, 0.35], "within": True}
+    text = markdown(result)
+    assert "inside the ensemble's interval" in text and "yes (0.280-0.400)" in text
+    assert "the ensemble's band 0.250-0.350 m: inside" in text
+    # a single oracle's spec scores as before: no interval column
+    plain = score(scored_spec(), load_run(tmp_path / "run.mcap"))
+    assert "displacement_band_m" not in plain and "ensemble" not in markdown(plain)

@@ -1,27 +1,33 @@
-"""The in situ API's cost to the simulation's thread: one JSON line per particle count.
+"""The in situ API's cost to the simulation's thread: JSON lines per particle count and mode.
 
     python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--mpm-steps S] [--threads T]
 
-{"bench": "insitu", "particles", "due_publish_s", "due_publish_cpu_s", "chunk_bytes",
- "copy_floor_s", "chunk_s", "stats_s", "sender_build_s", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
- "due_publish_over_mpm_step", "threads", "scene"}
+{"bench": "insitu", "particles", "mode", "due_publish_s", "due_publish_cpu_s",
+ "reclaim_wait_s", "snapshot_queue_s", "mpm_step_publishing_s", "chunk_bytes",
+ "sender_build_s", "sent", "dropped", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
+ "copy_floor_s", "due_publish_over_mpm_step", "threads", "scene"}
 
 The particles are our column scene's (column_13k, column_100k, column_1m), seeded and
 stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT excluded):
-* mpm_step_s: the median wall time of one MPM step at that size (the CFL step);
-* due_publish_s: the median wall time of `viz.due` + building the wanted fields from the
-  ParticleState + `viz.publish` at a due step, against a live `minority serve` process
-  on loopback (a 320x240 view of every particle every step, coloured by displacement, plus
-  Stats at every due step: the worst case), the caller's thread only (the sender thread and
-  the server run beside it, on the same cores); due_publish_cpu_s the same in the caller's
-  thread CPU time; chunk_s and stats_s its two parts (PublishStats.prepare_s per chunk,
-  stats_s per Stats message: the snapshots), chunk_bytes the chunk's size;
-  sender_build_s: the sender thread's culling and encoding per message (not the caller's);
+* mpm_step_s: the median wall time of one MPM step at that size (the CFL step), alone;
+* due_publish_s: the median caller's time of a due step against a live `minority serve`
+  process on loopback (a 320x240 view of every particle every step, coloured by
+  displacement, plus Stats at every due step: the worst case): `viz.due` + building the
+  wanted fields + `viz.publish`, plus, for mode "lend", the wait in `viz.reclaim` that the
+  next MPM step makes before it writes the lent arrays (reclaim_wait_s; the sender builds
+  beside the step, as in `minority sim`). mode "copy": publish copies what the step reads
+  (the default); "lend": `publish(copy=False)`, the arrays read in place and the
+  displacement computed by the sender (insitu.lend). The two modes alternate step by step.
+  due_publish_cpu_s: the caller's thread CPU time of due + publish; snapshot_queue_s: of
+  that, the publisher's snapshot (or loan) and queueing of the chunk and Stats;
+  mpm_step_publishing_s: the MPM step meanwhile (the sender shares the cores), without the
+  reclaim wait; chunk_bytes: per chunk; sender_build_s: the sender thread's culling and
+  encoding per message (not the caller's); sent, dropped: chunks of the run;
 * copy_floor_s: copying what such a step reads (positions, ids, displacement, velocity)
-  into warm buffers: the least a hand-over that never blocks can cost;
+  into warm buffers: the least a copying hand-over costs;
 * idle_due_s: `viz.due` at a step nothing is due (the cost at most steps);
-* full_outbox_publish_s: the median of the same call when the outbox is full, against a
-  server that stopped reading (its chunk callback never returns; shared memory off so the
+* full_outbox_publish_s: the median of a due step's call when the outbox is full, against
+  a server that stopped reading (its chunk callback never returns; shared memory off so the
   link fills): `due` refuses the step, so nothing is built nor copied.
 Targets (issue 26): due_publish_s <= 2 % of mpm_step_s; full_outbox_publish_s <= 1 ms.
 """
@@ -86,13 +92,15 @@ def mpm_step_s(sim: Simulator, steps: int) -> float:
     return statistics.median(times)
 
 
-def step_once(viz, sim, step: int, time_s: float, spacing: float, bounds) -> tuple[float, float]:
-    """One due step as sim.ranks makes it: (wall s, thread CPU s) of the caller."""
+def step_once(viz, sim, step: int, time_s: float, spacing: float, bounds,
+              lend: bool = False) -> tuple[float, float]:
+    """One due step as sim.ranks makes it (copied, or lent as `minority sim` does): (wall s,
+    thread CPU s) of the caller."""
     c0, t0 = time.thread_time(), time.perf_counter()
     if viz.due(step, time_s):
         ps = sim.particles
-        viz.publish(step, time_s, ps.x, fields=sim_fields(ps, viz.wanted), ids=ps.pid,
-                    spacing_m=spacing, bounds_m=bounds)
+        viz.publish(step, time_s, ps.x, fields=sim_fields(ps, viz.wanted, lazy=lend),
+                    ids=ps.pid, spacing_m=spacing, bounds_m=bounds, copy=not lend)
     return time.perf_counter() - t0, time.thread_time() - c0
 
 
@@ -131,23 +139,7 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
              str(Path(tmp) / "frames"), "--listen", endpoint],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            options = PublishOptions(stats_every_s=1e-9)  # Stats at every step: the worst case
-            with connect(RUN, connect=(endpoint,), wait_s=60.0, particles=n,
-                         options=options) as viz:
-                if viz.spec is None:
-                    raise RuntimeError("the render server did not answer within 60 s")
-                wall, cpu = [], []
-                for k in range(WARMUP_CALLS + calls):
-                    w, c = step_once(viz, sim, k, k * 1e-5, spacing, bounds)
-                    if k >= WARMUP_CALLS:
-                        wall.append(w)
-                        cpu.append(c)
-                    viz.wait_sent(60.0)  # one chunk at a time: never a drop
-                st = viz.stats
-                chunk_bytes = st.bytes_sent // max(st.sent, 1)
-                chunk_s = st.prepare_s / max(st.scheduled, 1)  # snapshot and queue a chunk
-                stats_s = st.stats_s / max(st.stats_due, 1)  # snapshot and queue Stats
-                build_s = st.build_s / max(st.scheduled + st.stats_due, 1)  # sender thread
+            rows = publish_steps(sim, endpoint, n, calls, spacing, bounds)
             idle = idle_due_s(n)
         finally:
             server.send_signal(signal.SIGINT)
@@ -157,15 +149,61 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
                 server.kill()
                 server.wait()
     full = full_outbox(sim, the_spec, calls, spacing, bounds)
-    due_publish = statistics.median(wall)
-    return {"bench": "insitu", "particles": n, "due_publish_s": round(due_publish, 6),
-            "due_publish_cpu_s": round(statistics.median(cpu), 6), "chunk_bytes": chunk_bytes,
-            "chunk_s": round(chunk_s, 6), "stats_s": round(stats_s, 6),
-            "sender_build_s": round(build_s, 6),
-            "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
-            "mpm_step_s": round(step_s, 6), "copy_floor_s": round(floor, 6),
-            "due_publish_over_mpm_step": round(due_publish / step_s, 4),
-            "threads": numba.get_num_threads(), "scene": name}
+    out = []
+    for mode, row in rows.items():
+        out.append({"bench": "insitu", "particles": n, "mode": mode, **row,
+                    "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
+                    "mpm_step_s": round(step_s, 6), "copy_floor_s": round(floor, 6),
+                    "due_publish_over_mpm_step": round(row["due_publish_s"] / step_s, 4),
+                    "threads": numba.get_num_threads(), "scene": name})
+    return out
+
+
+def publish_steps(sim, endpoint: str, n: int, calls: int, spacing, bounds) -> dict:
+    """Publish due steps to the server at `endpoint`, copied and lent in turn (`calls` of
+    each after warm-up ones), each followed by an MPM step as in `minority sim` (the sender
+    builds beside it; a lent step's particle writes wait for it: `Simulator.before_write`),
+    then waiting until the outbox is empty (so no step is refused). Per mode: medians of the
+    caller's costs, s."""
+    options = PublishOptions(stats_every_s=1e-9)  # Stats at every step: the worst case
+    modes = {"copy": False, "lend": True}
+    runs = {mode: {"wall": [], "cpu": [], "wait": [], "step": [], "prepare": []} for mode in modes}
+    with connect(RUN, connect=(endpoint,), wait_s=60.0, particles=n, options=options) as viz:
+        if viz.spec is None:
+            raise RuntimeError("the render server did not answer within 60 s")
+        sim.before_write = viz.reclaim
+        try:
+            for k in range(2 * (WARMUP_CALLS + calls)):
+                mode = ("copy", "lend")[k % 2]
+                st = viz.stats
+                prepare0 = st.prepare_s + st.stats_s
+                w, c = step_once(viz, sim, sim.step_count, sim.time_s, spacing, bounds,
+                                 modes[mode])
+                prepare = st.prepare_s + st.stats_s - prepare0
+                lent0, t0 = sim.times.lent, time.perf_counter()
+                sim.step(sim.stable_dt())
+                step_s = time.perf_counter() - t0
+                if k >= 2 * WARMUP_CALLS:
+                    wait = sim.times.lent - lent0  # the caller's, for this due step
+                    r = runs[mode]
+                    r["wall"].append(w + wait)
+                    r["cpu"].append(c)
+                    r["wait"].append(wait)
+                    r["step"].append(step_s - wait)
+                    r["prepare"].append(prepare)
+                viz.wait_sent(60.0)  # one chunk at a time: never a drop
+        finally:
+            sim.before_write = None
+        st = viz.stats
+    common = {"chunk_bytes": st.bytes_sent // max(st.sent, 1),
+              "sender_build_s": round(st.build_s / max(st.scheduled + st.stats_due, 1), 6),
+              "sent": st.sent, "dropped": st.dropped}
+    return {mode: {"due_publish_s": round(statistics.median(r["wall"]), 6),
+                   "due_publish_cpu_s": round(statistics.median(r["cpu"]), 6),
+                   "reclaim_wait_s": round(statistics.median(r["wait"]), 6),
+                   "snapshot_queue_s": round(statistics.median(r["prepare"]), 6),
+                   "mpm_step_publishing_s": round(statistics.median(r["step"]), 6), **common}
+            for mode, r in runs.items()}
 
 
 def idle_due_s(n: int, calls: int = 10_000) -> float:
@@ -244,8 +282,8 @@ def main() -> None:
         if size not in SIZES:
             parser.error(f"--sizes: unknown size {size!r} (known: {', '.join(SIZES)})")
     for size in args.sizes.split(","):
-        print(json.dumps(measure(SIZES[size], args.calls, args.mpm_steps, args.threads)),
-              flush=True)
+        for row in measure(SIZES[size], args.calls, args.mpm_steps, args.threads):
+            print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

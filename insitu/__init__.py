@@ -28,14 +28,17 @@ positions, fields=..., ids=None, spacing_m=..., bounds_m=None)` culls to the spe
 they move), its views' fields, decimation and occlusion culling: the caller's thread only
 copies what the step needs, the sender thread culls, encodes and puts; it never waits on
 the network (with the sender behind, a full outbox refuses the step at once, counted). Bad input
-raises ValueError before anything is sent. `viz.close(detail=None)` drains the outbox,
+raises ValueError before anything is sent. `publish(..., copy=False)` lends the arrays
+instead (insitu.lend): nothing is copied, the sender reads them in place (fields may be
+functions it calls), and `viz.reclaim()` waits until it has, before the caller changes
+them; a bad lent step raises at the next call. `viz.close(detail=None)` drains the outbox,
 sends the `rank_done` event with the counts and returns them (`PublishStats`); `with` does
 it, and publishes an exception raised in the loop as an `error` event first.
 
 Inside: insitu.publisher (RankPublisher: spec, cadences, culling, Stats), insitu.sender (the
 sender thread: puts, stalls, checkpoints, the record), insitu.outbox, insitu.payload (what a
 chunk and a Stats message carry), insitu.context (the server's cache of particles outside
-the regions), insitu.visibility (occlusion culling). docs/insitu.md is the guide.
+the regions), insitu.visibility (occlusion culling), insitu.lend (lent steps). docs/insitu.md is the guide.
 """
 
 from minority.insitu.api import InSitu, connect

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from os import PathLike
@@ -15,7 +16,8 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
-from minority.insitu.payload import ID_FIELD, Particles, particle_bytes
+from minority.insitu.lend import BadStep, check_array, check_field, checked
+from minority.insitu.payload import ID_FIELD, MAGNITUDE, Particles, particle_bytes
 from minority.insitu.publisher import Bounds, PublishOptions, PublishStats, RankPublisher
 from minority.protocol.check import NAME_RE
 from minority.protocol.fields import FIELDS
@@ -103,6 +105,10 @@ class InSitu:
         self._id_offset = id_offset
         self._ids: np.ndarray | None = None  # arange(n) + id_offset, kept for the next call
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None  # seen so far, m
+        self._bounds_lock = threading.Lock()
+        self._step_checked: tuple[int, float] | None = None  # by `due`: (step, time_s)
+        self._names_checked: set[str] = set()
+        self._bounds_given: tuple[object, Bounds | None] = (None, None)  # last bounds_m, checked
         self._closed = False
 
     # --- what the caller reads ---------------------------------------------------------------
@@ -153,67 +159,84 @@ class InSitu:
         to send to). Call it at every step, step 0 included: `every_s` cadences need the
         previous step's time, which it remembers. Costs microseconds."""
         _check_step(step, time_s)
+        self._step_checked = (step, time_s)
         return self._pub.due(step, time_s)
 
     def publish(self, step: int, time_s: float, positions: np.ndarray,
-                fields: Mapping[str, np.ndarray] | None = None, ids: np.ndarray | None = None,
-                *, spacing_m: float, bounds_m: Bounds | None = None) -> bool:
+                fields: Mapping[str, np.ndarray | Callable[[], np.ndarray]] | None = None,
+                ids: np.ndarray | None = None, *, spacing_m: float,
+                bounds_m: Bounds | None = None, copy: bool = True) -> bool:
         """Hand over this rank's particles at a step `due` said yes to (asked here when the
         caller did not); returns at once: it copies what the step needs for the sender
         thread, which culls and encodes, and never waits on the network (a full outbox
         refuses the step without copying, counted in `stats.dropped_outbox`). Returns
         whether a chunk was scheduled.
 
-        positions [n, 3] m; fields: name -> [n] or [n, k] values (SI units): those the spec's
-        views name ("X_magnitude" is computed from a given [n, k] "X"), and for Stats
-        "velocity" [n, 3] m/s and "displacement" [n, 3] m (for the max displacement); ids [n]
-        integers >= 0, unique across ranks (default: arange(n) + id_offset; give them when
-        particles move between ranks or are reordered: decimation and the server's cache go
-        by id); spacing_m: the particle spacing, m (spheres of half of it are drawn);
-        bounds_m: the domain's (lo, hi) corners, m (default: the box of every position
-        published so far). The arrays are read before it returns, never kept.
+        positions [n, 3] m; fields: name -> [n] or [n, k] values (SI units), or a function
+        of no argument returning them (called once, only when the step needs the field):
+        those the spec's views name ("X_magnitude" is computed from a given [n, k] "X"), and
+        for Stats "velocity" [n, 3] m/s and "displacement" [n, 3] m (for the max
+        displacement); ids [n] integers >= 0, unique across ranks (default: arange(n) +
+        id_offset; give them when particles move between ranks or are reordered: decimation
+        and the server's cache go by id); spacing_m: the particle spacing, m (spheres of half
+        of it are drawn); bounds_m: the domain's (lo, hi) corners, m (default: the box of
+        every position published so far).
 
-        Raises ValueError naming the problem (shape, length, dtype, a non-finite value)
-        before anything is sent."""
-        _check_step(step, time_s)
+        copy=True: the arrays are read before it returns, never kept; bad input (shape,
+        length, dtype, a non-finite value) raises ValueError before anything is sent.
+        copy=False lends them (insitu.lend): nothing is copied, the sender thread reads
+        them (and calls the field functions) later, and the caller must not change them
+        until `reclaim` returns; shapes and types are checked here, values there, and a bad
+        lent step is not sent: the next `publish`, `reclaim` or `close` raises its
+        ValueError."""
+        self._pub._loans.raise_bad()  # a bad lent step: its error now
+        if (step, time_s) != self._step_checked:  # (NaN is never equal: checked, raised)
+            _check_step(step, time_s)
         if not (isinstance(spacing_m, (int, float, np.floating)) and math.isfinite(spacing_m)
                 and spacing_m > 0.0):
             raise ValueError(f"spacing_m must be a finite length > 0 m, got {spacing_m!r}")
-        positions = _array("positions", positions)
+        positions = check_array("positions", positions)
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must be an [n, 3] array (m), got shape {positions.shape}")
         n = positions.shape[0]
         given = {}
         for name, values in (fields or {}).items():
-            _check_name(name, "field name")
+            if name not in self._names_checked:
+                _check_name(name, "field name")
+                self._names_checked.add(name)
             if name in ("positions", ID_FIELD):
                 raise ValueError(f"field {name!r} is reserved: pass positions and ids as "
                                  "arguments")
-            values = _array(f"field {name!r}", values)
-            if values.ndim not in (1, 2) or values.shape[0] != n:
-                raise ValueError(f"field {name!r} must be [n] or [n, k] with n = {n} (the "
-                                 f"positions' count), got shape {values.shape}")
-            given[name] = values
+            given[name] = values if callable(values) else check_field(name, values, n)
         if ids is not None:
             ids = np.asarray(ids)
             if ids.shape != (n,) or not np.issubdtype(ids.dtype, np.integer):
                 raise ValueError(f"ids must be [n] integers with n = {n}, got {ids.dtype} "
                                  f"{ids.shape}")
+        if bounds_m is not None and bounds_m is not self._bounds_given[0]:
+            self._bounds_given = (bounds_m, _bounds(bounds_m))  # (as given, checked)
         if bounds_m is not None:
-            bounds_m = _bounds(bounds_m)
+            bounds_m = self._bounds_given[1]
         if not self._pub.due(step, time_s):  # nothing is built or checked further
             return False
-        _check_finite("positions", positions)
-        for name, values in given.items():
-            _check_finite(f"field {name!r}", values)
-        if ids is None:
-            ids = self._default_ids(n)
-        elif n and ids.min() < 0:
-            raise ValueError(f"ids must be >= 0, got {int(ids.min())}")
-        if bounds_m is None:
-            bounds_m = self._seen_bounds(positions)
-        return self._pub.publish(step, time_s, Particles(positions, ids, given), float(spacing_m),
-                                 bounds_m)
+        wanted = set(self._pub.wanted())
+        given = {k: v for k, v in given.items()  # the fields the step reads, no more
+                 if k in wanted or k + MAGNITUDE in wanted}
+        particles = Particles(positions, ids if ids is not None else self._default_ids(n), given)
+        if copy:
+            particles = checked(particles)
+        bounds = bounds_m if bounds_m is not None else self._seen_bounds
+        if copy and bounds_m is None:
+            bounds = self._seen_bounds(particles)
+        return self._pub.publish(step, time_s, particles, float(spacing_m), bounds,
+                                 lend=not copy)
+
+    def reclaim(self, timeout_s: float | None = None) -> float:
+        """Wait until the sender no longer reads the arrays lent by `publish(copy=False)`
+        (it has culled and encoded their messages, or dropped them); then the caller may
+        change them. Returns the seconds waited (0 when nothing was lent). Raises the
+        ValueError of a lent step that was bad (not sent); TimeoutError after timeout_s."""
+        return self._pub.reclaim(timeout_s)
 
     def wait_sent(self, timeout_s: float) -> bool:
         """Wait until everything queued has left the outbox (at most timeout_s); whether it
@@ -228,10 +251,14 @@ class InSitu:
     def close(self, detail: dict | None = None) -> PublishStats:
         """Send what is queued (waiting at most options.drain_timeout_s), then the rank_done
         event with the counts (and `detail`); release the liveliness token, the session and
-        the record. Returns the counts; a second call only returns them."""
+        the record. Returns the counts; a second call only returns them. Raises the
+        ValueError of a lent step that was bad and not raised yet (after closing; it is
+        published as an error event before rank_done)."""
         if not self._closed:
             self._closed = True
             self._pub.close(detail)
+            if self._pub.close_error is not None:  # published as an error event too
+                raise self._pub.close_error
         return self._pub.stats
 
     def fail(self, exc: BaseException) -> PublishStats:
@@ -241,7 +268,10 @@ class InSitu:
         self._pub.event(EventKind.ERROR, f"rank {self.rank}: {type(exc).__name__}: {exc}",
                         {"error": type(exc).__name__})
         self._pub.options.drain_timeout_s = min(self._pub.options.drain_timeout_s, ERROR_DRAIN_S)
-        return self.close({"error": str(exc)[:1000]})
+        try:
+            return self.close({"error": str(exc)[:1000]})
+        except BadStep:  # published as an event too; `exc` is the error that goes on
+            return self._pub.stats
 
     def __enter__(self) -> InSitu:
         return self
@@ -259,15 +289,19 @@ class InSitu:
             self._ids = np.arange(self._id_offset, self._id_offset + n, dtype=np.int64)
         return self._ids
 
-    def _seen_bounds(self, positions: np.ndarray) -> Bounds:
-        if len(positions):
-            lo, hi = positions.min(axis=0), positions.max(axis=0)
-            if self._bounds is not None:
-                lo, hi = np.minimum(lo, self._bounds[0]), np.maximum(hi, self._bounds[1])
-            self._bounds = (lo, hi)
-        if self._bounds is None:
-            return ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-        return (tuple(map(float, self._bounds[0])), tuple(map(float, self._bounds[1])))
+    def _seen_bounds(self, particles: Particles) -> Bounds:
+        """The box of every position published so far (m); on the sender thread for a lent
+        step, so under a lock."""
+        positions = particles.positions
+        with self._bounds_lock:
+            if len(positions):
+                lo, hi = positions.min(axis=0), positions.max(axis=0)
+                if self._bounds is not None:
+                    lo, hi = np.minimum(lo, self._bounds[0]), np.maximum(hi, self._bounds[1])
+                self._bounds = (lo, hi)
+            if self._bounds is None:
+                return ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            return (tuple(map(float, self._bounds[0])), tuple(map(float, self._bounds[1])))
 
 
 def _is_int(value) -> bool:
@@ -286,25 +320,6 @@ def _check_step(step, time_s) -> None:
     if not (isinstance(time_s, (int, float, np.floating, np.integer)) and math.isfinite(time_s)
             and time_s >= 0.0):
         raise ValueError(f"time_s must be a finite simulated time >= 0 s, got {time_s!r}")
-
-
-def _array(what: str, values) -> np.ndarray:
-    a = np.asarray(values)
-    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-        raise ValueError(f"{what} must hold real numbers, got dtype {a.dtype}")
-    return a
-
-
-def _check_finite(what: str, a: np.ndarray) -> None:
-    """Raise naming the first particle with a NaN or infinite value; one summing pass when
-    all are finite (a sum that overflows is checked element by element)."""
-    if not np.issubdtype(a.dtype, np.floating) or math.isfinite(float(a.sum())):
-        return
-    bad = ~np.isfinite(a.reshape(len(a), -1)).all(axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{what}: particle {i} (row {i}) is not finite: {a[i].tolist()} "
-                         f"({int(bad.sum())} such rows)")
 
 
 def _bounds(bounds_m) -> Bounds:

@@ -30,6 +30,14 @@ class OutboxItem:
     # particles); `nbytes` counts the snapshot meanwhile
     build: Callable[[], tuple[bytearray, int]] | None = None
     nbytes: int = 0
+    # a lent step's item: called once when it no longer reads the caller's arrays (built,
+    # dropped or discarded; insitu.lend)
+    release: Callable[[], None] | None = None
+
+    def released(self) -> None:
+        if self.release is not None:
+            self.release()
+            self.release = None
 
     @property
     def size(self) -> int:
@@ -94,6 +102,7 @@ class Outbox:
             if old.kind == kind:
                 del self._items[i]
                 self._count(old, -1)
+                old.released()
                 return
 
     def take(self, timeout: float) -> OutboxItem | None:
@@ -126,6 +135,8 @@ class Outbox:
         """Drop every queued chunk and Stats message; returns how many of each."""
         with self._cond:
             n = (self._chunks, self._stats)
+            for item in self._items:
+                item.released()
             self._items = collections.deque(i for i in self._items if i.kind == CONTROL)
             self._chunks = self._bytes = self._stats = 0
             return n

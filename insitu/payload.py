@@ -64,9 +64,10 @@ class BufferPool:
 @dataclass
 class Particles:
     """One rank's particles at one step, as the caller gives them (not copied: the publisher
-    takes a `snapshot` of what it needs before the call returns). positions [n, 3] m; ids
-    [n] int64 >= 0; fields: name -> [n] or [n, k] values (SI units; protocol.fields names
-    the usual ones)."""
+    takes a `snapshot` of what it needs before the call returns, or reads them later when
+    they are lent: insitu.lend). positions [n, 3] m; ids [n] int64 >= 0; fields: name -> [n]
+    or [n, k] values (SI units; protocol.fields names the usual ones), or (lent) a function
+    of no argument returning them."""
 
     positions: np.ndarray
     ids: np.ndarray
@@ -82,7 +83,10 @@ class Particles:
         if name in self.fields or name == ID_FIELD:
             return True
         base = name.removesuffix(MAGNITUDE)
-        return base != name and base in self.fields and self.fields[base].ndim == 2
+        if base == name or base not in self.fields:
+            return False
+        given = self.fields[base]  # a function (a lent step's; insitu.lend): not called yet
+        return callable(given) or given.ndim == 2
 
     def snapshot(self, names, pool: BufferPool | None = None) -> Particles:
         """A copy of what `names` read (positions, ids and each named field, or the vector a

@@ -46,6 +46,7 @@ from typing import TextIO
 import numpy as np
 import zenoh
 from minority.insitu.context import DEFAULT_TOLERANCE_M, ContextSplit, ContextTracker
+from minority.insitu.lend import LentStep, Loans
 from minority.insitu.outbox import (
     CHUNK,
     CONTROL,
@@ -159,6 +160,7 @@ class PublishStats:
     stats_s: float = 0.0  # simulation-thread time taking a Stats snapshot, queueing, s
     build_s: float = 0.0  # sender-thread time culling and encoding chunks and Stats, s
     build_errors: int = 0  # chunks or Stats whose culling or encoding raised (a bug)
+    bad_steps: int = 0  # lent steps whose arrays were bad: not sent (in `failed`), raised
     # context rows (particles outside the regions, for the server's cache; part of
     # particles_sent when their chunk was sent), evicted ids, resets (first step, a spec
     # change, a dropped chunk)
@@ -173,6 +175,20 @@ class PublishStats:
                 + self.failed)
 
 Bounds = tuple[tuple[float, float, float], tuple[float, float, float]]  # (lo, hi) corners, m
+
+
+class _Copied:
+    """A copied step's snapshot, read as a LentStep is (`get`)."""
+
+    def __init__(self, particles: Particles):
+        self._particles = particles
+
+    @property
+    def nbytes(self) -> int:
+        return self._particles.nbytes
+
+    def get(self) -> Particles:
+        return self._particles
 
 
 class RankPublisher(Sender):
@@ -194,6 +210,8 @@ class RankPublisher(Sender):
         self.no_server_reason = ""
         self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
         self._pool = BufferPool(keep=options.outbox_chunks + 2)  # snapshots' arrays, reused
+        self._loans = Loans()  # messages that read lent arrays (publish(lend=True))
+        self.close_error = None  # set by close: a bad lent step not raised before
         self._stats_cadence = (Window(every_s=options.stats_every_s)
                                if options.stats_every_s > 0 else None)
         self._context = (ContextTracker(options.context_tolerance_m)
@@ -361,49 +379,63 @@ class RankPublisher(Sender):
         return tuple(dict.fromkeys(names + list(STATS_FIELDS if stats else ())))
 
     def publish(self, step: int, time_s: float, particles: Particles, spacing_m: float,
-                bounds_m: Bounds) -> bool:
-        """At a step `due` said yes to (it is asked here when the caller did not): copy what
+                bounds_m: Bounds | Callable[[Particles], Bounds], lend: bool = False) -> bool:
+        """At a step `due` said yes to (it is asked here when the caller did not): take what
         the step reads and queue the Stats message if its cadence picked the step and this
         rank's chunk if the spec schedules it (an empty one when no particle is in the
         regions, so the server's step completes); the sender thread culls and encodes them.
-        `due` refused them already when the outbox was full (only this thread queues chunks
-        and Stats, so it stays so). spacing_m: the particle spacing (m; the render radius
-        follows it); bounds_m: the domain's corners (m). Returns whether a chunk was
-        scheduled. A second call for the same step sends nothing."""
+        What the step reads is copied, or with `lend` read in place by the sender (checked
+        there first: insitu.lend; `reclaim` waits for it). `due` refused them already when
+        the outbox was full (only this thread queues chunks and Stats, so it stays so).
+        spacing_m: the particle spacing (m; the render radius follows it); bounds_m: the
+        domain's corners (m), or a function of the checked particles giving them (called by
+        the sender). Returns whether a chunk was scheduled. A second call for the same step
+        sends nothing."""
         if self._due is None or self._due[:2] != (step, time_s):
             self.due(step, time_s)
         _, _, prev, request, stats = self._due
         self._due = (step, time_s, prev, None, False)  # consumed
+        if request is None and not stats:
+            return False
+        t0 = time.perf_counter()
         # one snapshot for both (what the chunk and the Stats read), then both into the
         # outbox: the sender wakes once the caller's copy is done, not in the middle of it
         names = (tuple(request.fields) if request is not None else ()) + (
             STATS_READS if stats else ())
-        shared = particles.snapshot(names, self._pool) if request is not None and stats else None
-        stats_item = self._stats_item(step, time_s, particles, shared) if stats else None
+        if lend:
+            snap = LentStep(step, particles)
+        else:
+            snap = _Copied(particles.snapshot(names, self._pool))
+        stats_item = self._stats_item(step, time_s, particles, snap, lend) if stats else None
         if request is None:
             self._put_stats(stats_item)
             return False
-        t0 = time.perf_counter()
-        with self._lock:
-            self.stats.particles_total += particles.n
         for name in request.fields:
             if not particles.has(name):
                 self._missing(name, particles)
-        snap = shared if shared is not None else particles.snapshot(request.fields, self._pool)
         spec = self.spec
 
         def build() -> tuple[bytearray, int]:
-            return self._build_chunk(step, time_s, prev, request, spec, snap, spacing_m,
-                                     bounds_m)
+            p = snap.get()
+            bounds = bounds_m(p) if callable(bounds_m) else bounds_m
+            return self._build_chunk(step, time_s, prev, request, spec, p, spacing_m, bounds)
 
         item = OutboxItem(keys.chunk(self.run, step, self.rank), None, CHUNK, build=build,
-                          nbytes=snap.nbytes)
+                          nbytes=snap.nbytes, release=self._loans.lend() if lend else None)
         self._put_stats(stats_item)
         dropped = self._outbox.put(item)
         with self._lock:
+            self.stats.particles_total += particles.n
             self.stats.dropped_outbox += dropped
             self.stats.prepare_s += time.perf_counter() - t0
         return True
+
+    def reclaim(self, timeout_s: float | None = None) -> float:
+        """Wait until no queued message reads a lent step's arrays (insitu.lend); the
+        seconds waited. Raises the BadStep of a lent step that was not sent."""
+        waited = self._loans.wait(timeout_s)
+        self._loans.raise_bad()
+        return waited
 
     def _build_chunk(self, step: int, time_s: float, prev: float | None,
                      request: DataRequest, spec: Spec, p: Particles, spacing_m: float,
@@ -463,11 +495,11 @@ class RankPublisher(Sender):
             self.stats.context_resets += split.reset
         return split
 
-    def _stats_item(self, step: int, time_s: float, p: Particles,
-                    snap: Particles | None = None) -> OutboxItem | None:
+    def _stats_item(self, step: int, time_s: float, p: Particles, snap: _Copied | LentStep,
+                    lend: bool) -> OutboxItem | None:
         """This rank's Stats as an outbox item, computed and encoded on the sender thread
-        from a snapshot (the spec's open regions at time_s; none while the spec is not
-        known). None, counted as dropped, without a velocity field."""
+        from the step's snapshot or lent particles (the spec's open regions at time_s; none
+        while the spec is not known). None, counted as dropped, without a velocity field."""
         t0 = time.perf_counter()
         if not ("velocity" in p.fields or "velocity_magnitude" in p.fields):
             self._missing("velocity", p)
@@ -476,19 +508,19 @@ class RankPublisher(Sender):
             return None
         spec = self.spec
         regions = () if spec is None else spec.active_regions(time_s)
-        snap = snap if snap is not None else p.snapshot(STATS_READS, self._pool)
         run, rank = self.run, self.rank
 
         def build() -> tuple[bytearray, int]:
             t1 = time.perf_counter()
-            payload = flow_stats(run, rank, step, time_s, snap, regions).encode()
+            payload = flow_stats(run, rank, step, time_s, snap.get(), regions).encode()
             with self._lock:
                 self.stats.build_s += time.perf_counter() - t1
             return payload, 0
 
         with self._lock:
             self.stats.stats_s += time.perf_counter() - t0
-        return OutboxItem(keys.stats(self.run), None, STATS, build=build, nbytes=snap.nbytes)
+        return OutboxItem(keys.stats(self.run), None, STATS, build=build, nbytes=snap.nbytes,
+                          release=self._loans.lend() if lend else None)
 
     def _put_stats(self, item: OutboxItem | None) -> None:
         if item is not None:
@@ -513,6 +545,11 @@ class RankPublisher(Sender):
             with self._lock:
                 self.stats.dropped_at_exit += chunks
                 self.stats.stats_dropped += stats
+        self.close_error = self._loans.take_bad()  # a bad lent step the caller never saw
+        if self.close_error is not None:
+            self.event(EventKind.ERROR, f"rank {self.rank}: ValueError: {self.close_error}",
+                       {"error": "ValueError"})
+            detail = {**(detail or {}), "error": str(self.close_error)[:1000]}
         if self._thread is not None:
             self.event(EventKind.RANK_DONE, f"rank {self.rank} done",
                        {**(detail or {}), **self.summary()})

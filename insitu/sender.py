@@ -50,6 +50,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import zenoh
+from minority.insitu.lend import BadStep
 from minority.insitu.outbox import CHUNK, CONTROL, STATS, OutboxItem
 from minority.protocol import keys
 from minority.protocol.session import QoS, put
@@ -105,7 +106,9 @@ class Sender:
             if item is None:
                 continue
             try:
-                if item.build is not None and not self._build(item):
+                built = item.build is None or self._build(item)
+                item.released()
+                if not built:
                     continue
                 outcome = self._send(item) if item.publish else "local"
                 recorded = self._record(item)
@@ -141,6 +144,7 @@ class Sender:
             item.build = None
             return True
         except Exception as exc:  # noqa: BLE001 - the sender must outlive a bad snapshot
+            bad = isinstance(exc, BadStep)  # the caller's, raised at its next call
             with self._lock:
                 if item.kind == CHUNK:
                     self.stats.failed += 1
@@ -148,8 +152,13 @@ class Sender:
                 else:
                     self.stats.stats_dropped += 1
                 first = not self.stats.build_errors
-                self.stats.build_errors += 1
-            if first:
+                if bad:
+                    self.stats.bad_steps += item.kind == CHUNK
+                else:
+                    self.stats.build_errors += 1
+            if bad:
+                self._loans.bad(exc)
+            elif first:
                 print(f"rank {self.rank}: could not build a {item.kind} for {item.key}: "
                       f"{exc!r}; counted as failed", file=self.log, flush=True)
             return False

@@ -236,6 +236,7 @@ class SlabSimulator(Simulator):
     def _exchange_particles(self) -> None:
         if self.ranks == 1:
             return
+        self._writing()  # migration and rebalancing move particle rows
         k = self.rebalance_every
         if k and self.step_count > 0 and self.step_count % k == 0:
             self.rebalance()

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numba
@@ -51,10 +52,11 @@ class PhaseTimes:
     # CPU time of the calling thread in bin + p2g + grid + g2p, s: the work itself, without
     # time lost to other processes (all of it with one numba thread; part of it with more)
     compute_cpu: float = 0.0
+    lent: float = 0.0  # waiting for the publisher to read lent particle arrays (before_write)
 
     @property
     def total(self) -> float:
-        return self.bin + self.p2g + self.grid + self.g2p + self.comm
+        return self.bin + self.p2g + self.grid + self.g2p + self.comm + self.lent
 
 
 @dataclass
@@ -149,6 +151,9 @@ class Simulator:
     step_count: int = field(init=False, default=0)
     clamp_count: int = field(init=False, default=0)  # particle-steps clamped to the domain
     times: PhaseTimes = field(init=False, default_factory=PhaseTimes)
+    # called before a step writes the particle arrays (in situ: InSitu.reclaim, the arrays
+    # lent by publish(copy=False) are read by then); its wait, s, adds to times.lent
+    before_write: Callable[[], object] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         if self.threads is not None:
@@ -209,9 +214,11 @@ class Simulator:
     def step(self, dt: float) -> None:
         """Advance one explicit MLS-MPM step of dt seconds."""
         t_comm = time.perf_counter()
+        lent_comm = self.times.lent
         self._exchange_particles()
         t0 = time.perf_counter()
         c0 = time.thread_time()
+        lent0 = self.times.lent
         ps, g, b = self.particles, self.grid, self._bins
         n = ps.n
         inv_dx = 1.0 / g.dx
@@ -223,11 +230,13 @@ class Simulator:
             self._raise_nonfinite_or_escape(bad)
         self._order_blocks()
         if self.step_count % REORDER_INTERVAL_STEPS == 0:
+            self._writing()
             self._permute(b.order[:n])
             ps = self.particles
             b.order[:n] = np.arange(n)
         b.ensure_buffers(self._ghost_slots)
         t1 = time.perf_counter()
+        lent1 = self.times.lent
         kernels.p2g_scatter(ps.x, ps.v, ps.C, ps.tau, ps.mass, ps.vol0, b.order, b.block_start,
                             b.active_blocks, b.n_active, b.nblocks3, b.buf, x0, off, inv_dx, dt)
         t2 = time.perf_counter()
@@ -239,17 +248,19 @@ class Simulator:
         kernels.grid_gather_update(b.buf, b.block_slot, b.nblocks3, g.data, g.origin, g.dx, dt,
                                    self._gravity, w.axis, w.pos, w.side, w.mu, w.lo, w.hi)
         t3 = time.perf_counter()
+        self._writing()
+        t3w = time.perf_counter()
         kernels.g2p(ps.x, ps.v, ps.C, ps.F, ps.tau, g.data, x0, off, inv_dx, dt, self._lo,
                     self._hi, self._lam, self._mu, self._alpha, self.scene.flip, self._stats)
         t4 = time.perf_counter()
         c4 = time.thread_time()
         self._reduce_stats()
         t5 = time.perf_counter()
-        self.times.bin += t1 - t0
+        self.times.bin += t1 - t0 - (lent1 - lent0)
         self.times.p2g += t2 - t1
         self.times.grid += t3 - t2c
-        self.times.g2p += t4 - t3
-        self.times.comm += (t0 - t_comm) + (t2c - t2) + (t5 - t4)
+        self.times.g2p += t4 - t3w
+        self.times.comm += (t0 - t_comm) - (lent0 - lent_comm) + (t2c - t2) + (t5 - t4)
         self.times.compute_cpu += (c2 - c0) + (c4 - c2c)
         self.step_count += 1
         self.time_s += dt
@@ -260,6 +271,14 @@ class Simulator:
                 f"{int(self._stats[1])} particles could not be updated")
         self.clamp_count += int(self._stats[2])
         self.max_speed_m_s = math.sqrt(self._stats[0])
+
+    def _writing(self) -> None:
+        """Before the particle arrays are written: wait until the publisher no longer reads
+        them (`before_write`)."""
+        if self.before_write is not None:
+            t0 = time.perf_counter()
+            self.before_write()
+            self.times.lent += time.perf_counter() - t0
 
     # --- hooks of a slab rank (sim.decomp.SlabSimulator); single process: no-ops -------
     def _exchange_particles(self) -> None:

@@ -25,6 +25,9 @@ per step instead of one per color (fewer barriers, which matters on a shared mac
 
 Per-particle work in P2G and G2P is on scalars (no scratch arrays): weights per axis,
 separable sums over the 3x3x3 stencil, the 3x3 eigen-solve in registers.
+
+Kernels release the GIL (nogil): an in situ publisher's sender thread (minority.insitu)
+culls and encodes beside them.
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def _block_key(x, p, x0, inv_dx, grid_shape, off, nby, nbz):
     return k
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _count_keys(x, x0, inv_dx, grid_shape, off, nblocks3, key, counts, first_bad):
     """Per chunk c of the particles (counts.shape[0] equal chunks): key[p] (block of particle
     p, or -1), counts[c, k] (particles of chunk c in block k), first_bad[c] (first p with
@@ -96,7 +99,7 @@ def _count_keys(x, x0, inv_dx, grid_shape, off, nblocks3, key, counts, first_bad
                 counts[c, k] += 1
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _place_keys(key, offsets, order):
     """order[offsets[c, k]++] = p over the particles p of chunk c, in increasing p."""
     n = key.shape[0]
@@ -109,7 +112,7 @@ def _place_keys(key, offsets, order):
             offsets[c, k] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bin_particles(x, x0, inv_dx, grid_shape, off, nblocks3, block_start, order, block_slot,
                   active_blocks, key, counts, first_bad):
     """Stable counting sort of particles by block, in parallel over counts.shape[0] equal
@@ -158,7 +161,7 @@ def _weights3(X):
             0.5 * (fx - 0.5) ** 2)
 
 
-@njit(parallel=True, cache=True, fastmath=FASTMATH)
+@njit(parallel=True, cache=True, nogil=True, fastmath=FASTMATH)
 def p2g_scatter(x, v, C, tau, mass, vol0, order, block_start, active_blocks, n_active,
                 nblocks3, buf, x0, off, inv_dx, dt):
     """Particle to grid, part 1: each non-empty block scatters mass and APIC momentum plus
@@ -280,7 +283,7 @@ def _node_update(grid, i, j, k, origin, dx, dt, gravity, wall_axis, wall_pos, wa
         grid[i, j, k, 4 + a] = vel[a] - grid[i, j, k, 4 + a] / m
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def grid_gather_update(buf, block_slot, nblocks3, grid, origin, dx, dt, gravity, wall_axis,
                        wall_pos, wall_side, wall_mu, wall_lo, wall_hi):
     """Particle to grid, part 2, fused with the grid update. Every node of the grid (all
@@ -341,7 +344,7 @@ def grid_gather_update(buf, block_slot, nblocks3, grid, origin, dx, dt, gravity,
                                      pos)
 
 
-@njit(parallel=True, cache=True, fastmath=G2P_FASTMATH)
+@njit(parallel=True, cache=True, nogil=True, fastmath=G2P_FASTMATH)
 def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, flip,
         out_stats):
     """Grid to particle: APIC affine field C, advection with the grid velocity (clamped to
@@ -499,7 +502,7 @@ def g2p(x, v, C, F, tau, grid, x0, off, inv_dx, dt, lo, hi, lam, mu, alpha, flip
         out_stats[2] += chunk_stats[ch, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _collapsed_update(f00, f01, f02, f10, f11, f12, f20, f21, f22, F_out, tau_out, lam, mu,
                       alpha):
     """Rare path (inverted or collapsed trial F^E): the array-based full-SVD update."""
@@ -519,7 +522,7 @@ def _take_row(src, p, dst, k):
         dst[k, f] = src[p, f]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def permute_particles(order, src, dst):
     """dst[i][k] = src[i][order[k]] for the nine particle arrays (x, v, C, F, tau, mass,
     vol0, x0, pid), each viewed as [n, m]; src and dst are tuples. One parallel loop."""
@@ -536,7 +539,7 @@ def permute_particles(order, src, dst):
         _take_row(src[8], p, dst[8], k)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def find_nonfinite(x, v, C, F, tau):
     """First (particle slot, field code) holding a non-finite value, or (-1, -1)."""
     for p in range(x.shape[0]):
@@ -561,7 +564,7 @@ def find_nonfinite(x, v, C, F, tau):
     return -1, -1
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def particle_sums(x, v, mass, gravity, out):
     """out [8]: mass (kg), momentum xyz (kg m/s), kinetic energy (J), gravitational
     potential energy -m g.x (J), max |v| (m/s), spare."""

@@ -147,6 +147,8 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
     frames = frame_times(scene.duration_s, scene.output_interval_s)
     dt0 = config.dt if config.dt is not None else sim.stable_dt()
     publisher, run, spec = _start_publishing(config, scene, sim, comm, log)
+    if publisher is not None:
+        sim.before_write = publisher.reclaim  # the arrays lent at the last due step
     say(f"sim: scene {scene.name}: {n_total} particles on {ranks} rank(s) "
         f"(x-blocks per rank {list(map(int, sim.starts[1:] - sim.starts[:-1]))}), "
         f"{len(frames)} frames, dt {dt0:.3g} s ({'fixed' if config.dt is not None else 'cfl'})")
@@ -232,14 +234,16 @@ def _start_publishing(config, scene, sim, comm, log):
 
 
 def _publish_step(viz, sim, spacing_m: float, bounds_m) -> None:
-    """Ask the publisher whether this step is due; if so, build the fields it wants from the
-    particles and hand them over."""
+    """Ask the publisher whether this step is due; if so, lend it the particles' arrays and
+    the fields it wants (computed ones as functions the sender calls): nothing is copied,
+    and the step that next writes them waits until the sender has read them
+    (Simulator.before_write = InSitu.reclaim)."""
     from minority.sim.publish import sim_fields
 
     if viz.due(sim.step_count, sim.time_s):
-        ps = sim.particles
-        viz.publish(sim.step_count, sim.time_s, ps.x, fields=sim_fields(ps, viz.wanted),
-                    ids=ps.pid, spacing_m=spacing_m, bounds_m=bounds_m)
+        ps = sim.particles  # lent: the sim's next write waits for the sender (before_write)
+        viz.publish(sim.step_count, sim.time_s, ps.x, fields=sim_fields(ps, viz.wanted, lazy=True),
+                    ids=ps.pid, spacing_m=spacing_m, bounds_m=bounds_m, copy=False)
 
 
 def _step_loop(sim, config, frames, writer, publisher, say) -> int:

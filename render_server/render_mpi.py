@@ -107,17 +107,19 @@ def _canvas(canvases: dict[str, Canvas], view: View) -> Canvas:
 
 
 def render_views_distributed(comm, step: StepLike, spec: Spec, canvases: dict[str, Canvas],
-                             layers: Layers, keys: np.ndarray | None = None,
-                             views: list[View] | None = None, shadows: bool = False
+                             keys: np.ndarray | None = None, views: list[View] | None = None,
+                             shadows: bool = False, layers: Layers | None = None
                              ) -> tuple[list[RenderedView], PhaseTimes]:
     """render_server.frames.render_views on N ranks (collective): `step` holds this rank's
     share of the step's particles (positions [n, 3] m, fields [n] or [n, k]; the same field
     names, spec and step metadata on every rank), keys [n] int64 their rows in the
     one-process step (default: rank order). Returns rank 0's RenderedViews, pixel-identical
     to render_views on the concatenated step ([] on the other ranks), and this rank's
-    phase times. Setup and render times of a view are this rank's own."""
+    phase times. Setup and render times of a view are this rank's own. `canvases` and
+    `layers` (per view name) are reused from step to step."""
     if shadows and comm.size > 1:
         raise ValueError(SHADOWS_REFUSED)
+    layers = Layers() if layers is None else layers
     t0 = time.perf_counter()
     times = PhaseTimes()
     names = sorted(step.fields)

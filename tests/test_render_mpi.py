@@ -1,0 +1,235 @@
+"""Rendering one step on N MPI ranks (render_server.render_mpi): frames pixel-identical to
+the one-process render_views of the same step and spec, for a lattice, a random heap with
+duplicated particles (exact depth ties across ranks), and a collapsed-column-like step with
+the showcase's kind of views (perspective and parallel, regions, decimation, annotations);
+balanced bricks; the pieces (k-d tree, compositing) in one process.
+
+The ranks run under the venv's mpiexec (this file is the worker: `python
+tests/test_render_mpi.py OUT_DIR [scale]`), one numba thread each, as in test_sim_mpi.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from minority.protocol.spec import Spec
+from minority.render_server.assemble import AssembledStep
+from minority.render_server.composite import bands, composite
+from minority.render_server.distribute import build_tree
+from minority.render_server.frames import render_views
+from minority.render_server.render_mpi import SHADOWS_REFUSED, render_views_distributed
+
+TIMEOUT_S = 600
+CASES = ("lattice", "heap", "column")
+SIDE = {"position": [0.35, -1.2, 0.16], "focal_point": [0.35, 0.072, 0.12],
+        "view_up": [0, 0, 1], "view_angle_deg": 30}
+TOP = {"position": [0.4, 0.072, 1.5], "focal_point": [0.4, 0.072, 0.0], "view_up": [0, 1, 0],
+       "parallel_projection": True, "parallel_scale_m": 0.3}
+AERIAL = {"position": [1.15, -0.8, 0.8], "focal_point": [0.3, 0.072, 0.1], "view_up": [0, 0, 1],
+          "view_angle_deg": 30}
+# looking straight down the lattice's y rows: many exact depth ties between neighbours
+ALONG_Y = {"position": [0.3, -1.0, 0.15], "focal_point": [0.3, 0.0, 0.15], "view_up": [0, 0, 1],
+           "parallel_projection": True, "parallel_scale_m": 0.2}
+REGIONS = [{"name": "front", "lo_m": [0.0, 0.0, 0.0], "hi_m": [0.25, 0.144, 0.4]},
+           {"name": "toe", "lo_m": [0.35, 0.0, 0.0], "hi_m": [1.0, 0.144, 0.1]},
+           {"name": "nowhere", "lo_m": [5.0, 5.0, 5.0], "hi_m": [6.0, 6.0, 6.0]}]
+
+
+def view(name: str, camera: dict, **kw) -> dict:
+    return {"name": name, "camera": camera, "width": 160, "height": 120,
+            "field": "displacement", "colormap": "Cool to Warm", "range": [0.0, 0.4], **kw}
+
+
+def case(name: str, scale: int = 1) -> tuple[AssembledStep, Spec, np.ndarray]:
+    """The whole step, its spec, and the rank (of 3 groups, folded onto the rank count) each
+    row starts on. Same on every rank: seeded."""
+    rng = np.random.default_rng(7)
+    if name == "lattice":
+        # 35 x 8 x 20 sites, every site twice (the second copy another colour), overlapping
+        # neighbours (radius 0.6 spacing); 35 layers along x: the split planes cut a layer and
+        # break it by key, so copies of one site land on different ranks (ties across ranks)
+        h = 0.018
+        g = np.stack(np.meshgrid(np.arange(35), np.arange(8), np.arange(20), indexing="ij"), -1)
+        pos = (g.reshape(-1, 3) * h + h / 2).astype(np.float32)
+        pos = np.concatenate([pos, pos])
+        disp = (pos[:, 0] * 0.5).astype(np.float32)
+        disp[len(disp) // 2:] = 0.4 - disp[len(disp) // 2:]
+        spec = {"sphere_radius_m": 0.6 * h, "views": [
+            view("along", ALONG_Y, annotations=False), view("side", SIDE, annotations=False),
+            view("top", TOP, annotations=False)]}
+        start = np.arange(len(pos)) * 3 // len(pos)  # contiguous thirds
+    elif name == "heap":  # random heap; a third of its particles twice, other value, other rank
+        n = 12_000 * scale
+        x = 0.6 * (1.0 - np.sqrt(rng.random(n)))
+        pos = np.c_[x, 0.144 * rng.random(n), 0.32 * (1.0 - x / 0.6) ** 2 * rng.random(n)]
+        twice = rng.choice(n, n // 3, replace=False)
+        pos = np.concatenate([pos, pos[twice]]).astype(np.float32)
+        disp = rng.random((len(pos), 3)).astype(np.float32) * 0.25
+        spec = {"views": [view("aerial", AERIAL, annotations=False),
+                          view("top", TOP, annotations=False, colormap="viridis")]}
+        start = rng.integers(0, 3, len(pos))  # rows scattered over the ranks
+    elif name == "column":  # a collapsing column's shape, with ids; the showcase's views
+        n = 13_000 * scale
+        x = 0.6 * rng.random(n) ** 1.5
+        pos = np.c_[x, 0.144 * rng.random(n), 0.3 * np.exp(-4 * x) * rng.random(n)]
+        pos = pos.astype(np.float32)
+        disp = np.c_[x, np.zeros(n), pos[:, 2] - 0.3].astype(np.float32)
+        spec = {"views": [
+            view("side", SIDE, schedule=[{"regions": ["front", "toe"]}]),
+            view("top", TOP, decimate=3),
+            view("aerial", AERIAL, decimate=2, schedule=[{"regions": ["toe"]}]),
+            view("empty", AERIAL, schedule=[{"regions": ["nowhere"]}], background=[0, 0, 1])]}
+        start = np.zeros(len(pos), np.int64)
+        start[len(pos) * 7 // 10:] = 1  # rank 0 holds 70 % at first, rank 2 nothing
+    else:
+        raise ValueError(name)
+    fields = {"displacement": disp}
+    if name == "column":
+        fields["id"] = rng.permutation(len(pos)).astype(np.int64)
+    spacing = 0.018 if name == "lattice" else float((0.6 * 0.144 * 0.3 / 3 / len(pos)) ** (1 / 3))
+    step = AssembledStep(40, 0.02, pos, fields, spacing, 1, 1, 0, 0.0, False, 0.019,
+                         bounds_m=((0.0, 0.0, 0.0), (1.0, 0.144, 0.4)))
+    spec = Spec.from_dict({"version": 2, "run": "mpi", "regions": REGIONS, **spec})
+    return step, spec, start
+
+
+def worker(out: Path, scale: int) -> None:
+    """Under mpiexec: render every case on this communicator; rank 0 writes the frames."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    meta = {}
+    for name in CASES:
+        step, spec, start = case(name, scale)
+        rows = np.flatnonzero(start % comm.size == comm.rank)
+        mine = AssembledStep(step.step, step.time_s, step.positions[rows],
+                             {k: v[rows] for k, v in step.fields.items()}, step.spacing_m, 1, 1,
+                             0, 0.0, False, step.prev_time_s, bounds_m=step.bounds_m)
+        frames, times = render_views_distributed(comm, mine, spec, {}, keys=rows)
+        if comm.rank == 0:
+            np.savez(out / f"{name}.npz", **{f.view.name: f.image for f in frames})
+            meta[name] = {"counts": times.counts,
+                          "particles": {f.view.name: f.particles for f in frames}}
+    if comm.rank == 0:
+        (out / "meta.json").write_text(json.dumps(meta))
+
+
+def run_ranks(ranks: int, out: Path, scale: int = 1) -> dict:
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    proc = subprocess.run([mpiexec, "-n", str(ranks), sys.executable, __file__, str(out),
+                           str(scale)], capture_output=True, text=True, timeout=TIMEOUT_S,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads((out / "meta.json").read_text())
+
+
+@pytest.fixture(scope="module", params=[2, 3])
+def distributed(request, tmp_path_factory):
+    out = tmp_path_factory.mktemp(f"ranks{request.param}")
+    return request.param, out, run_ranks(request.param, out)
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_frames_are_pixel_identical_to_one_process(distributed, name):
+    ranks, out, meta = distributed
+    step, spec, _ = case(name)
+    reference = {f.view.name: f for f in render_views(step, spec, {})}
+    got = np.load(out / f"{name}.npz")
+    assert sorted(got.files) == sorted(reference)
+    for view_name, ref in reference.items():
+        diff = np.any(got[view_name] != ref.image, axis=-1)
+        assert not diff.any(), f"{ranks} ranks, {name}/{view_name}: {diff.sum()} pixels differ"
+        assert meta[name]["particles"][view_name] == ref.particles
+    drawn = [ref for ref in reference.values() if ref.particles]
+    assert all(len(np.unique(r.image.reshape(-1, 3), axis=0)) > 20 for r in drawn)
+
+
+def test_bricks_are_balanced(distributed):
+    ranks, _, meta = distributed
+    for name in CASES:
+        counts = np.array(meta[name]["counts"])
+        total = len(case(name)[0].positions)
+        assert counts.sum() == total
+        assert np.abs(counts - total / ranks).max() <= 0.03 * total / ranks, (name, counts)
+
+
+def test_ties_decide_pixels():
+    """The heap's duplicated particles tie at equal depth with other colours: the frame
+    depends on how ties break, so the pixel identity above checks the tie rule."""
+    step, spec, _ = case("heap")
+    ref = render_views(step, spec, {})[0].image.copy()
+    flipped = np.arange(len(step.positions))[::-1]  # same particles, reversed rows
+    rev = AssembledStep(step.step, step.time_s, step.positions[flipped],
+                        {k: v[flipped] for k, v in step.fields.items()}, step.spacing_m, 1, 1,
+                        0, 0.0, False, step.prev_time_s)
+    other = render_views(rev, spec, {})[0].image
+    assert np.any(other != ref)
+
+
+@pytest.mark.slow
+def test_large_heap_is_pixel_identical(tmp_path):
+    run_ranks(3, tmp_path, scale=10)
+    step, spec, _ = case("heap", 10)
+    got = np.load(tmp_path / "heap.npz")
+    for ref in render_views(step, spec, {}):
+        assert np.array_equal(got[ref.view.name], ref.image), ref.view.name
+
+
+def test_tree_splits_counts_for_any_rank_count():
+    rng = np.random.default_rng(3)
+    sample = rng.random((9000, 3)) * [1.0, 0.2, 0.4]
+    keys = np.arange(len(sample), dtype=np.int64)
+    for ranks in (1, 2, 3, 5, 7):
+        tree = build_tree(sample, keys, ranks, sample.min(0), sample.max(0))
+        assert sorted(tree.rank[tree.rank >= 0]) == list(range(ranks))
+        assert np.all(tree.boxes[:, 0] <= tree.boxes[:, 1])
+    # lattice: thousands of particles on each plane; keys split a plane's layer
+    g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.1
+    from minority.render_server.distribute import classify
+    tree = build_tree(g, np.arange(len(g), dtype=np.int64), 3, g.min(0), g.max(0))
+    counts = np.bincount(classify(g, np.arange(len(g), dtype=np.int64), tree), minlength=3)
+    assert counts.tolist() == [576, 576, 576]
+
+
+def test_composite_keeps_the_nearest_then_the_lowest_key():
+    from minority.render_server.composite import _merge
+
+    rgb = np.array([[[10, 0, 0]] * 4, [[20, 0, 0]] * 4, [[30, 0, 0]] * 4], np.uint8)  # [3, 4, 3]
+    depth = np.array([[1.0, 2.0, np.inf, 5.0], [1.0, 1.0, np.inf, 5.0],
+                      [0.5, 2.0, np.inf, 5.0]])
+    key = np.array([[7, 1, 9, 4], [3, 8, 9, 2], [9, 0, 9, 6]], np.int64)
+    out, hit = np.empty((4, 3), np.uint8), np.empty(4, np.bool_)
+    _merge(rgb, depth, key, out, hit)
+    assert out[:, 0].tolist() == [30, 20, 10, 20]  # nearest; nearest; background; lowest key
+    assert hit.tolist() == [True, True, False, True]
+
+
+def test_composite_on_one_rank_and_bands():
+    rgb = np.zeros((4, 5, 3), np.uint8)
+    depth = np.full(20, np.inf)
+    depth[3] = 1.0
+    frame, hit = composite(None, rgb, depth, np.zeros(20, np.int64))
+    assert frame.shape == (4, 5, 3) and hit.sum() == 1 and hit[3]
+    assert bands(10, 3).tolist() == [0, 3, 6, 10]
+    with pytest.raises(ValueError, match="depth and key must be"):
+        composite(None, rgb, depth[:5], np.zeros(20, np.int64))
+
+
+def test_shadows_on_several_ranks_are_refused():
+    class TwoRanks:
+        size, rank = 2, 0
+
+    step, spec, _ = case("lattice")
+    with pytest.raises(ValueError, match="shadows are not drawn on more than one render rank"):
+        render_views_distributed(TwoRanks(), step, spec, {}, shadows=True)
+    assert "one rank" in SHADOWS_REFUSED
+
+
+if __name__ == "__main__":
+    worker(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 1)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 from minority.protocol import keys
-from minority.protocol.errors import ProtocolError
+from minority.protocol.errors import ProtocolError, SpecError
 from minority.protocol.messages import MAX_RANKS, Chunk, Event, EventKind, Frame, Stats, Timing, decode_as
 from minority.protocol.session import CONTROL_QOS, FRAME_QOS, Inbox, put
 from minority.protocol.spec import Spec
@@ -130,6 +130,8 @@ class RenderServer:
         self._seq = 0
         self.between_runs = 0  # rank messages that came when no run was open: not logged
         self.observer_errors = 0  # calls of options.observer that raised
+        self.spec_updates = 0  # specs put by another peer and adopted (_spec_update)
+        self.spec_updates_refused = 0
         culled = [v.name for v in self.spec.views if v.occlusion_cull]
         if options.shadows and culled:
             print(f"minority serve: views {', '.join(culled)} have occlusion_cull: the sim "
@@ -145,7 +147,10 @@ class RenderServer:
             raise
         self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
                             options.inbox_bytes)
-        self._side = Inbox(session, [keys.event(self.run), keys.stats(self.run)], SIDE_CAPACITY)
+        # rank events, stats, and spec updates put by another peer (an oracle that follows
+        # the run: minority oracle follow); the server's own put comes back and is ignored
+        self._side = Inbox(session, [keys.event(self.run), keys.stats(self.run),
+                                     keys.spec(self.run)], SIDE_CAPACITY)
         self._queryable = session.declare_queryable(keys.spec(self.run), self._on_query)
         self._token_sub = session.liveliness().declare_subscriber(
             keys.rank_tokens(self.run), self._on_token, history=True)
@@ -257,6 +262,9 @@ class RenderServer:
         """Rank events and stats: log them in the open run; a done event settles its rank."""
         while (item := self._side.get(timeout=0)) is not None:
             kind = keys.parse(item.key)
+            if kind is not None and kind.topic == keys.Topic.SPEC:
+                self._spec_update(item)
+                continue
             cls = Event if kind is not None and kind.topic == keys.Topic.EVENT else Stats
             inst = self._current()
             try:
@@ -280,6 +288,34 @@ class RenderServer:
                     if inst.chunks_received.get(message.rank, 0) < sent:
                         continue  # gone once its last chunk is in (_settle_gone_ranks)
                 self._release(self._gone(inst, message.rank))
+
+    def _spec_update(self, item) -> None:
+        """A spec put on the run's spec key by another peer: adopt it (the queryable serves
+        it, steps rendered from now on follow it; ranks follow the same put), log it, count
+        it; a malformed spec or another run's is refused (an error event; the spec stays)."""
+        payload = bytes(item.payload)
+        inst = self._current()
+        try:
+            spec = decode_as(payload, Spec)
+            if spec.run != self.run:
+                raise SpecError(f"its run is {spec.run!r}, not {self.run!r}")
+            if spec == self.spec:
+                return  # the server's own put, or the same spec again
+        except (ProtocolError, SpecError) as exc:
+            self.spec_updates_refused += 1
+            self._error(f"refused a spec update on {item.key}: {exc}")
+            if self._log is not None and inst is not None:  # to the log's rejected topic
+                self._log.put(inst.writer, item.key, item.payload, item.recv_ns, None)
+            return
+        self.spec, self._spec_payload = spec, payload
+        self.spec_updates += 1
+        print(f"minority serve: run {self.run}: spec updated ({len(spec.views)} views"
+              + (f"; {spec.provenance['reason']}" if "reason" in spec.provenance else "")
+              + ")", file=sys.stderr, flush=True)
+        if inst is not None:
+            if self._log is not None:
+                self._log.put(inst.writer, item.key, item.payload, item.recv_ns, spec)
+            self._observe(inst, item.key, spec)
 
     def _receive(self, item) -> None:
         """Take one received chunk (or none, on a timeout): assemble, expire, settle ranks."""
@@ -437,7 +473,8 @@ class RenderServer:
                 "log_dropped": (self._log.dropped_by.get(inst.writer.path, 0)
                                 if self._log is not None and inst.writer is not None else 0),
                 "log_unwritten": inst.writer.unwritten if inst.writer is not None else 0,
-                "between_runs": self.between_runs}
+                "between_runs": self.between_runs, "spec_updates": self.spec_updates,
+                "spec_updates_refused": self.spec_updates_refused}
 
     def summary(self) -> dict:
         """The counters of the open run (or of the last one)."""

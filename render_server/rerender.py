@@ -201,7 +201,8 @@ def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
              progress: Callable[[str], None] | None = None,
              notes: list[LogNote] | None = None) -> ReplaySummary:
     """Re-render the log at `path` into out/{view}/{step:06d}.png (out None: render nothing)
-    with `spec` (None: the log's last spec of the run), and/or export its steps to a VTK
+    with `spec` (None: the log's spec in force at each step, as the server rendered it: an
+    update put during the run applies from the steps logged after it), and/or export its steps to a VTK
     series in `vtk` ({run}_{step:06d}.vtp, {run}.pvd). A truncated or damaged log replays
     up to its last complete chunk, noted in `notes`."""
     specs = log_specs(path, notes)
@@ -210,9 +211,11 @@ def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
     if spec is None and out is not None and not own:
         raise RunLogError(f"{path}: no spec of run {run!r} is recorded; pass --spec")
     summary = ReplaySummary(run, "the log's spec" if spec is None else "a given spec", out=out)
+    follow = spec is None  # the recorded spec of each step
     spec = spec if spec is not None else (own[-1] if own else None)
     if spec is not None and out is not None:
-        summary.views = {v.name: ViewReport() for v in spec.views}
+        summary.views = {v.name: ViewReport() for s in (own if follow else [spec])
+                         for v in s.views}
     culled = sorted({v.name for s in own for v in s.views if v.occlusion_cull})
     if shadows and out is not None and culled and progress is not None:
         progress(f"note: the recorded views {', '.join(culled)} had occlusion_cull: the log "
@@ -231,17 +234,18 @@ def rerender(path: Path, spec: Spec | None = None, out: Path | None = None,
         if out is None:
             continue
         ok = []
-        due = spec.wants(step.step, step.time_s, step.prev_time_s)
+        now = recorded if follow and recorded is not None else spec
+        due = now.wants(step.step, step.time_s, step.prev_time_s)
         if recorded is None or not recorded.request(step.step, step.time_s, step.prev_time_s):
             summary.unchecked += bool(due)
         for view in due:
-            why = missing_data(spec, view, step, recorded)
+            why = missing_data(now, view, step, recorded)
             if why:
                 summary.views[view.name].problems[why].append(step.step)
             else:
                 ok.append(view)
         rendered = 0
-        for r in render_views(step, spec, canvases, shadows, ok):
+        for r in render_views(step, now, canvases, shadows, ok):
             if r.error:  # not expected: missing_data checked the field
                 summary.views[r.view.name].problems[r.error].append(step.step)
                 continue

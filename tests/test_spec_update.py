@@ -73,3 +73,28 @@ def test_a_bad_spec_update_is_refused_and_the_spec_kept(daemon, client_factory, 
     assert daemon.spec == spec() and daemon.spec_updates == 0
     assert problem in daemon.stats.last_error
     assert daemon.summary()["spec_updates_refused"] == 1
+
+
+def test_replay_renders_each_step_with_the_spec_in_force_when_it_was_logged(
+        daemon, client_factory, tmp_path):
+    """Step 20 under the first spec (every 20th step), then an update to every 3rd step,
+    then step 21: the server renders both; the replay of its log with the log's specs too
+    (with the last spec alone, step 20 would not be due)."""
+    from minority.cli import main
+
+    follower = client_factory()
+    for step, frames in ((20, 1), (21, 2)):
+        if step == 21:
+            put(follower, keys.spec(RUN), updated(3, "late").encode(), CONTROL_QOS)
+            assert wait_until(lambda: daemon.spec_updates == 1)
+        chunk = make_chunk(n=40, step=step, rank=0, ranks=1, run=RUN)
+        put(follower, keys.chunk(RUN, step, 0), chunk.encode(), LOSSLESS_QOS)
+        assert wait_until(lambda n=frames: daemon.stats.frames == n)
+    daemon.close()
+    live = sorted(p.name for p in (tmp_path / "frames").rglob("*.png"))
+    assert live == ["000020.png", "000021.png"]
+    assert main(["replay", str(tmp_path / "run.mcap"), "--out", str(tmp_path / "re"), "-q"]) == 0
+    replayed = sorted((tmp_path / "re").rglob("*.png"))
+    assert [p.name for p in replayed] == live
+    for p in replayed:
+        assert p.read_bytes() == (tmp_path / "frames" / RUN / "side" / p.name).read_bytes()

@@ -51,6 +51,7 @@ class TrainConfig:
     pushforward_prob: float = 0.5  # the fraction of windows unrolled
     moving_fraction: float = 0.0  # > 0: this fraction of windows ends while its scene moves
     seed: int = 0
+    max_wall_s: float | None = None  # stop after this many s of training (then validate, save)
 
 
 def coarse_grain_stats(meta: dict) -> dict:
@@ -336,16 +337,17 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         loss_acc += loss.detach().item()
         n_acc += 1
         now = time.perf_counter()
-        if now - t_last > 10 or step == cfg.steps:
+        last = step == cfg.steps or (cfg.max_wall_s is not None and now - t0 >= cfg.max_wall_s)
+        if now - t_last > 10 or last:
             rate = n_acc / max(now - t_last, 1e-9)
             print(f"train: step {step}/{cfg.steps} loss {loss_acc / n_acc:.4f} lr {lr:.2e} "
                   f"{rate:.2f} steps/s", file=log, flush=True)
             history.append({"step": step, "loss": loss_acc / n_acc, "lr": lr,
                             "wall_s": now - t0})
             t_last, loss_acc, n_acc = now, 0.0, 0
-        if step % cfg.ckpt_every == 0 or step == cfg.steps:
+        if step % cfg.ckpt_every == 0 or last:
             save(out)
-        if val_trajs and (step % cfg.val_every == 0 or step == cfg.steps):
+        if val_trajs and (step % cfg.val_every == 0 or last):
             model.eval()
             scores = [rollout_error(evaluated().eval(), t, cfg.val_frames, device)
                       for t in val_trajs]
@@ -380,6 +382,10 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
             if reached >= want and err < best:
                 best = err
                 save(out.with_suffix(".best.pt"))
+        if last and step < cfg.steps:
+            print(f"train: stopped at step {step} after {now - t0:.0f} s (--max-wall-s)",
+                  file=log, flush=True)
+            break
     save(out)
     return out
 

@@ -249,6 +249,9 @@ def _train_parser(osub) -> None:
                         "its kinetic energy is back at rest, gns.events); the rest are drawn "
                         "from the whole run. 0: every frame alike")
     q.add_argument("--seed", type=int, default=0, help="random seed")
+    q.add_argument("--max-wall-s", type=float, metavar="S",
+                   help="stop after S seconds of training, with a last validation and "
+                        "checkpoint (a time-boxed machine; default: run all --steps)")
     q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     q.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     q.set_defaults(func=_cmd_train)
@@ -272,7 +275,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                      ckpt_every=args.ckpt_every, keep_validated=args.keep_validated,
                      ema_decay=args.ema_decay, pushforward_steps=args.pushforward,
                      pushforward_prob=args.pushforward_prob,
-                     moving_fraction=args.moving_fraction, seed=args.seed)
+                     moving_fraction=args.moving_fraction, seed=args.seed,
+                     max_wall_s=args.max_wall_s)
     try:
         out = train(args.dataset, args.out, mc, tc, resume=args.resume, init=args.init,
                     deepen_to=args.deepen, device=args.device)

@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 # own MPI mpi4py is built against, see README.md)
 EXTRAS ?= mpi,test
 
-.PHONY: demo test test-slow bench lint clean clean-numba
+.PHONY: demo test test-slow bench lint clean clean-numba gpu-train
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -30,6 +30,11 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	@for b in bench/[a-z]*.py; do m=$$(basename $$b .py); echo "# bench.$$m" >&2; $(BIN)/python -m bench.$$m || exit 1; done
+
+# the reference GNS trained on a GPU machine in one time-boxed command, with the machine's own
+# python3 (deploy/gpu/train.sh; `make gpu-train TINY=1 PYTHON=.venv/bin/python`: a CPU smoke test)
+gpu-train:
+	sh deploy/gpu/train.sh
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -11,9 +11,9 @@ from minority.insitu import connect
 from minority.protocol import Spec, decode_as, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
+from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import wait_until
 from test_render_daemon import RUN, spec
-from test_render_daemon import daemon as _daemon_fixture  # noqa: F401 (the `daemon` fixture)
 
 
 def updated(every_steps: int, reason: str) -> Spec:
@@ -21,6 +21,14 @@ def updated(every_steps: int, reason: str) -> Spec:
     d["views"][0]["schedule"] = [{"every_steps": every_steps}]
     d["provenance"] = {"reason": reason, "forecast_s": 1.5}
     return Spec.from_dict(d)
+
+
+@pytest.fixture
+def daemon(server, tmp_path):
+    d = RenderServer(server, ServerOptions(spec(), tmp_path / "frames", tmp_path / "run.mcap",
+                                           timeout_s=30.0))
+    yield d
+    d.close()
 
 
 def test_the_server_and_a_rank_follow_a_spec_put_by_another_peer(daemon, client_factory,

@@ -204,6 +204,14 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
     keys = global_rows(comm, n) if keys is None else np.ascontiguousarray(keys, np.int64)
     if keys.shape != (n,):
         raise ValueError(f"keys must be [{n}], got shape {keys.shape}")
+    if comm.size == 1:  # one brick: nothing to agree on or move
+        lo, hi = extent(as_positions(positions)) if n else (np.zeros(3), np.zeros(3))
+        none = np.array([-1], np.int64)
+        tree = KdTree(np.array([LEAF], np.int64), np.zeros(1), np.zeros(1, np.int64), none,
+                      none, np.zeros(1, np.int64), np.array([[lo, hi]], np.float64))
+        t1 = time.perf_counter()
+        return Partition(positions, {k: fields[k] for k in names}, keys, np.array([n]), tree,
+                         t1 - t0, 0.0)
     tree = agree_tree(comm, positions, keys, sample)
     t1 = time.perf_counter()
     dest = classify(positions, keys, tree)

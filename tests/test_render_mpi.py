@@ -232,4 +232,13 @@ def test_shadows_on_several_ranks_are_refused():
 
 
 if __name__ == "__main__":
-    worker(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 1)
+    try:
+        worker(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 1)
+    except BaseException:  # one rank failing must not leave the others waiting
+        import traceback
+
+        from mpi4py import MPI
+
+        traceback.print_exc()
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(1)

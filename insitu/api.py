@@ -209,8 +209,8 @@ class InSitu:
                                  "arguments")
             given[name] = values if callable(values) else check_field(name, values, n)
         if ids is not None:
-            ids = np.asarray(ids)
-            if ids.shape != (n,) or not np.issubdtype(ids.dtype, np.integer):
+            ids = ids if isinstance(ids, np.ndarray) else np.asarray(ids)
+            if ids.shape != (n,) or ids.dtype.kind not in "iu":  # signed or unsigned integers
                 raise ValueError(f"ids must be [n] integers with n = {n}, got {ids.dtype} "
                                  f"{ids.shape}")
         if bounds_m is not None and bounds_m is not self._bounds_given[0]:

@@ -71,7 +71,7 @@ def visible_mask(positions: np.ndarray, view: View, radius_m: float) -> np.ndarr
     return _visible(x, y, d, r_out, near, framed, radius_m, b, cover)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cover(x, y, d, r_in, near, b, cover):
     """cover[bin] = least depth d of a particle whose disk r_in holds every pixel center of
     the bin (pixel centers of bin (i, j): i b + 0.5 ... (i + 1) b - 0.5, likewise in y)."""
@@ -96,7 +96,7 @@ def _cover(x, y, d, r_in, near, b, cover):
                     row[i] = dq
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _visible(x, y, d, r_out, near, framed, radius, b, cover):
     """Keep a particle unless its silhouette misses the image (framed False), or every bin
     holding a pixel center inside it is covered nearer than its front (d - radius)."""

@@ -52,7 +52,7 @@ class PhaseTimes:
 
     exchange_s: float = 0.0  # sample, tree, classification and Alltoallv of the particles
     setup_s: float = 0.0  # subsets and acceleration structures
-    render_s: float = 0.0  # ray casting and shading of this rank's layers
+    render_s: float = 0.0  # ray casting and shading of the layers, until every rank has its
     composite_s: float = 0.0  # depth compositing and the gather to rank 0
     annotate_s: float = 0.0  # rank 0: annotations and PNG encoding
     total_s: float = 0.0
@@ -176,6 +176,8 @@ def render_views_distributed(comm, step: StepLike, spec: Spec, canvases: dict[st
                 values = local.fields[view.field]
                 values = values if index is None else values[index]
             layer = _draw(scene, values, sub_keys, view, _canvas(canvases, view), layers)
+            if comm.size > 1:
+                comm.Barrier()  # waiting for the slowest rank's layer counts as rendering
             t2 = time.perf_counter()
             times.render_s += t2 - t1
             image, hit = composite(comm, *layer) or (None, None)
@@ -226,6 +228,8 @@ def render_step_distributed(comm, positions: np.ndarray, fields: dict[str, np.nd
         t2 = time.perf_counter()
         layer = _draw(scene, part.fields[view.field], part.keys, view, _canvas(canvases, view),
                       layers)
+        if comm.size > 1:
+            comm.Barrier()  # waiting for the slowest rank's layer counts as rendering
         t3 = time.perf_counter()
         done = composite(comm, *layer)
         times.render_s += t3 - t2

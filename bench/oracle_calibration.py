@@ -129,8 +129,14 @@ def cost(spec, run: dict) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", type=Path, default=CHECKPOINT)
+    ap = argparse.ArgumentParser(
+        description="Calibration of the ensemble oracle on the held-out scenes: a JSON line "
+                    "per scene, perturbation and widening (whether the run's events and "
+                    "deposit fell inside, frames and bytes against the single rollout), then "
+                    "a summary line per perturbation and widening. Module docstring: what "
+                    "each field means.")
+    ap.add_argument("--checkpoint", type=Path, default=CHECKPOINT,
+                    help=f"GNS checkpoint (default: {CHECKPOINT})")
     ap.add_argument("--runs", type=Path, default=Path("data/calibration/runs"),
                     help="MPM runs of the test scenes (made when missing)")
     ap.add_argument("--out", type=Path, default=Path("data/calibration"),
@@ -140,8 +146,9 @@ def main() -> None:
                     help="K of the jitter and friction ensembles, the nominal included ("
                          "both: their 2K - 1 members together)")
     ap.add_argument("--perturb", nargs="+", default=["jitter", "friction", "both"],
-                    choices=["jitter", "friction", "both"])
-    ap.add_argument("--widen", type=float, nargs="+", default=[0.0, 0.5, 1.0],
+                    choices=["jitter", "friction", "both"],
+                    help="the ensembles to score (default: all three)")
+    ap.add_argument("--widen", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0],
                     help="interval widening factors to score (gns.ensemble.band)")
     ap.add_argument("--frames", type=int, default=120, help="the specs' frame budget")
     ap.add_argument("--threads", type=int, default=1, help="torch and numba threads")

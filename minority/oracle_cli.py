@@ -11,6 +11,8 @@ from pathlib import Path
 from minority.cliargs import BAD_INPUT, FAILED, add_out, command, fail, missing, parent_made
 
 DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
+DEFAULT_CHECKPOINT = (Path(__file__).resolve().parent.parent / "gns" / "checkpoints"
+                      / "column_l64_m5.pt")
 
 
 def _fail(step: str, exc: Exception, status: int) -> int:
@@ -670,11 +672,114 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- follow -----------------------------------------------------------------------------
+
+def _follow_parser(osub) -> None:
+    from minority.protocol.session import add_network_args
+
+    q = command(osub, "follow", help="follow a live run and re-forecast when it departs",
+                description="The closed-loop oracle (docs/oracle.md, 'Following the run'): a "
+                            "zenoh client of the run's server that reads the ranks' Stats, "
+                            "and when the run leaves the spec's predictions (an event early "
+                            "or late, motion outside the regions) puts an updated spec: at "
+                            "once the timeline shifted and C+1 snapshots asked for (every "
+                            "particle, one model frame apart), then the GNS rolled forward "
+                            "from them to rest and the rest of the run re-planned. Server "
+                            "and ranks adopt each update without stopping; each is printed "
+                            "as a JSON line (reason, kind, cost) and logged with the run. "
+                            "Ends when the server ends the run. Exit status 1 when no "
+                            "server serves the run.")
+    q.add_argument("run", help="run id (the spec's `run`)")
+    q.add_argument("--scene", required=True,
+                   help="the run's scene: a shipped name or a TOML path (domain, friction "
+                        "angle and duration for the rollout)")
+    q.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT,
+                   help="GNS checkpoint to roll forward")
+    q.add_argument("--ranks", type=int, default=0,
+                   help="ranks of the run (0: the most seen sending Stats at one step)")
+    q.add_argument("--max-updates", type=int, default=3, metavar="N",
+                   help="re-forecasts at most")
+    q.add_argument("--snapshot-lead", type=float, default=0.01, metavar="S",
+                   help="first snapshot S s of simulated time after the newest Stats")
+    q.add_argument("--wait", type=float, default=30.0, metavar="S",
+                   help="wait this long (wall) for a server to serve the run's spec")
+    q.add_argument("--timeout", type=float, metavar="S",
+                   help="stop after S s of wall time even if the run goes on")
+    q.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_network_args(q)
+    q.set_defaults(func=_cmd_follow)
+
+
+def _scene_of(name: str):
+    """follow.Scene of a shipped scene name or TOML path (ValueError naming the problem)."""
+    import tomllib
+
+    import numpy as np
+
+    from minority.follow import Scene
+    from minority.sim.scene import SceneError, scene_path
+
+    try:
+        raw = tomllib.loads(Path(scene_path(name)).read_text())
+        size = np.asarray(raw["domain"]["size_m"], dtype=np.float64)
+        return Scene(np.stack([np.zeros(3), size], axis=1),
+                     float(raw["material"]["friction_angle_deg"]),
+                     float(raw["time"]["duration_s"]))
+    except (OSError, SceneError, tomllib.TOMLDecodeError, KeyError, ValueError) as exc:
+        raise ValueError(f"scene {name}: cannot read its domain, friction angle and duration "
+                         f"({exc!r})") from None
+
+
+def _cmd_follow(args: argparse.Namespace) -> int:
+    import threading
+
+    from minority.follow import Follower, FollowOptions
+    from minority.protocol.session import Role, open_session, options_from_args
+
+    if args.ranks < 0 or args.max_updates < 0 or args.snapshot_lead < 0:
+        return _fail("follow", "--ranks, --max-updates and --snapshot-lead must be >= 0",
+                     BAD_INPUT)
+    if (status := missing("oracle follow", args.checkpoint)) is not None:
+        return status
+    try:
+        scene = _scene_of(args.scene)
+        model, ckpt = _load_for_cpu(args)
+    except (ValueError, KeyError) as exc:
+        return _fail("follow", exc, BAD_INPUT)
+    opts = options_from_args(args)
+    opts.connect_timeout_s = args.wait
+    try:
+        session = open_session(opts, Role.CLIENT)
+    except Exception as exc:  # noqa: BLE001 - zenoh.ZError, CredentialsError: say it, exit 1
+        return _fail("follow", f"cannot reach the server: {exc}", FAILED)
+    stop = threading.Event()
+    follower = Follower(session, args.run, model, ckpt["stats"], scene,
+                        FollowOptions(ranks=args.ranks, max_updates=args.max_updates,
+                                      snapshot_lead_s=args.snapshot_lead, wait_s=args.wait),
+                        log=sys.stdout)
+    try:
+        follower.fetch_spec()
+        print(f"oracle follow: following run {args.run!r}", file=sys.stderr, flush=True)
+        updates = follower.run(stop, args.timeout)
+    except TimeoutError as exc:
+        follower.close()
+        return _fail("follow", exc, FAILED)
+    except KeyboardInterrupt:
+        follower.close()
+        updates = follower.updates
+    finally:
+        session.close()
+    print(f"oracle follow: {len(updates)} updates, "
+          f"{sum(u.kind == 'forecast' for u in updates)} re-forecasts", file=sys.stderr)
+    return 0
+
+
 # --- oracle -----------------------------------------------------------------------------
 
 STEPS = {"dataset": _dataset_parser, "export-npz": _export_npz_parser, "train": _train_parser,
          "evaluate": _evaluate_parser, "diagnose": _diagnose_parser, "ship": _ship_parser,
-         "rollout": _rollout_parser, "spec": _spec_parser, "preview": _preview_parser}  # pipeline order
+         "rollout": _rollout_parser, "spec": _spec_parser, "preview": _preview_parser,
+         "follow": _follow_parser}  # pipeline order
 
 
 def add_parser(sub) -> None:

@@ -15,10 +15,14 @@ regions that exist, ...) are the from_document methods'.
   the interval its members span, earliest_s..latest_s);
 - budget: frames and bytes the schedule was planned within;
 - provenance: free-form notes on where the spec came from (checkpoint, rollout, edits);
-- deposit (optional): an ensemble oracle's predicted final deposit, per member and as a band.
+- deposit (optional): an ensemble oracle's predicted final deposit, per member and as a band;
+- snapshots (optional): simulated times (s) at which every rank sends every particle
+  (positions and displacement, no regions, decimation or culling), e.g. for the oracle that
+  follows the run (minority oracle follow) to roll its GNS forward from the run's state.
 
 `Spec.request(step, time_s, prev_time_s)` says what the simulation must send at a step: the union
-of the fields and regions of the views due then, decimated by the views' common stride.
+of the fields and regions of the views due then, decimated by the views' common stride; at a
+snapshot's step, every particle with displacement besides (merged with any view due then).
 """
 
 from __future__ import annotations
@@ -53,6 +57,8 @@ ID_FIELD = "id"  # particle ids, sent when views due at one step decimate differ
 # may be indented, so it may be a few times larger, never more.
 MAX_SPEC_FILE_BYTES = 4 * MAX_HEADER_BYTES
 MAX_INT_DIGITS = 19  # decimal digits of a JSON integer: int64 (budget.bytes is the largest)
+SNAPSHOT_FIELD = "displacement"  # a snapshot's field besides positions: x - displacement = x0
+MAX_SNAPSHOTS = 64  # snapshot times a spec may name
 
 __all__ = ["Budget", "Camera", "DataRequest", "DepositSpread", "InlineColormap",
            "PredictedEvent", "Region", "Spec", "Spread", "View", "Window"]
@@ -186,6 +192,7 @@ class SpecDocument(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     budget: Budget | None = None
     provenance: dict = {}
     deposit: DepositSpread | None = None
+    snapshots: Annotated[tuple[NonNegative, ...], msgspec.Meta(max_length=MAX_SNAPSHOTS)] = ()
 
 
 @dataclass(frozen=True)
@@ -201,6 +208,7 @@ class DataRequest:
     # when every due view has occlusion_cull: each due view with the regions it shows (None:
     # every particle); send only particles visible in one of them among what it renders
     visible_in: tuple[tuple[View, tuple[Region, ...] | None], ...] = ()
+    snapshot: bool = False  # a spec's snapshot: every particle, whatever the views need
 
 
 @dataclass(frozen=True)
@@ -218,6 +226,7 @@ class Spec:
     budget: Budget = Budget()
     provenance: dict = field(default_factory=dict, compare=False)
     deposit: DepositSpread | None = None  # an ensemble oracle's predicted deposit spread
+    snapshots: tuple[float, ...] = ()  # s: every rank sends every particle at these times
     sent_ns: int = field(default=0, compare=False)
 
     @property
@@ -238,16 +247,29 @@ class Spec:
         names = view.window(step, time_s, prev_time_s).regions
         return tuple(self.region(n) for n in names) if names else None
 
+    def snapshot_due(self, time_s: float, prev_time_s: float | None = None) -> bool:
+        """Whether a snapshot time lies in (prev_time_s, time_s] (s), as an every_s instant
+        falls to one step (prev_time_s None: when time_s is one)."""
+        if prev_time_s is None:
+            return time_s in self.snapshots
+        return any(prev_time_s < t <= time_s for t in self.snapshots)
+
     def request(self, step: int, time_s: float, prev_time_s: float | None = None) -> DataRequest | None:
-        """What the simulation must send at this step: None when no view is due; regions None
-        when a due view needs every particle."""
+        """What the simulation must send at this step: None when no view is due and no
+        snapshot; regions None when a due view needs every particle. A snapshot sends every
+        particle, undecimated and unculled, with the due views' fields (or, when none is
+        due, every view's) and the displacement."""
         views = self.wants(step, time_s, prev_time_s)
-        if not views:
+        snapshot = bool(self.snapshots) and self.snapshot_due(time_s, prev_time_s)
+        if not views and not snapshot:
             return None
-        fields = dict.fromkeys(v.field for v in views)
-        stride = math.gcd(*(v.decimate for v in views))
+        fields = dict.fromkeys(v.field for v in (views or self.views))
+        stride = math.gcd(*(v.decimate for v in views)) if views and not snapshot else 1
         if any(v.decimate != stride for v in views):
             fields[ID_FIELD] = None  # the server picks each view's particles by id
+        if snapshot:
+            fields[SNAPSHOT_FIELD] = None
+            return DataRequest(tuple(v.name for v in views), tuple(fields), None, 1, (), True)
         boxes = [self.view_regions(v, step, time_s, prev_time_s) for v in views]
         regions = (None if any(b is None for b in boxes)
                    else tuple(dict.fromkeys(r for b in boxes for r in b)))
@@ -279,6 +301,8 @@ class Spec:
             d["provenance"] = self.provenance
         if self.deposit is not None:  # optional: a spec without it encodes as before
             d["deposit"] = self.deposit.to_dict()
+        if self.snapshots:  # optional, as deposit
+            d["snapshots"] = list(self.snapshots)
         return d
 
     @classmethod
@@ -318,10 +342,12 @@ class Spec:
         _unique([e.name for e in s.events], "events: event names")
         events = tuple(e.checked(f"events[{i}]") for i, e in enumerate(s.events))
         deposit = s.deposit.checked("deposit") if s.deposit is not None else None
+        if list(s.snapshots) != sorted(set(s.snapshots)):
+            raise SpecError(f"snapshots: times must increase, got {list(s.snapshots)}")
         return cls(run=s.run, views=views, version=SPEC_VERSION,
                    sphere_radius_m=s.sphere_radius_m, regions=regions, events=events,
                    budget=s.budget or Budget(), provenance=s.provenance, deposit=deposit,
-                   sent_ns=sent_ns)
+                   snapshots=tuple(s.snapshots), sent_ns=sent_ns)
 
     # wire and file forms
     def to_json(self) -> dict:

@@ -1,0 +1,248 @@
+"""The closed-loop oracle (minority.follow, `minority oracle follow`): the spec's optional
+snapshots, the departure detector on synthetic Stats, the coarse-graining of snapshots, the
+timeline shift, and one loopback run (a real server and rank) whose early onset makes the
+follower ask for snapshots, receive them through the ordinary chunk path and put a
+re-forecast (stubbed) that the server and the rank adopt without stopping."""
+
+import io
+import threading
+
+import numpy as np
+import pytest
+from minority.gns.dataset import coarse_grain
+from minority.insitu import connect
+from minority.protocol import Spec
+from minority.protocol.errors import SpecError
+from minority.protocol.messages import Stats, speed_histogram
+from minority.render_server.daemon import RenderServer, ServerOptions
+from test_loopback import wait_until
+
+from minority.follow import (
+    Detector,
+    Follower,
+    FollowOptions,
+    LiveFlow,
+    Scene,
+    Snapshot,
+    coarse_history,
+    observed_events,
+    shifted,
+)
+
+RUN = "follow-run"
+DT = 0.001  # s per sim step of the synthetic runs
+FRAME_S = 0.005  # the model's frame interval of the stub checkpoint stats
+NONE = np.zeros(0)
+
+
+def spec(**extra) -> Spec:
+    d = {"version": 2, "run": RUN, "views": [{
+        "name": "side", "camera": {"position": [0.5, -2.0, 0.5], "focal_point": [0.5, 0.5, 0.5]},
+        "width": 32, "height": 24, "field": "displacement", "range": [0, 1],
+        "schedule": [{"t_start_s": 0.2, "t_end_s": 0.4, "every_s": 0.05, "regions": ["a"]}]}],
+        "regions": [{"name": "a", "lo_m": [0, 0, 0], "hi_m": [1, 1, 1]}],
+        "events": [{"name": "failure_onset", "time_s": 0.2, "tolerance_s": 0.02},
+                   {"name": "runout_start", "time_s": 0.25, "tolerance_s": 0.025},
+                   {"name": "peak_motion", "time_s": 0.3, "tolerance_s": 0.03},
+                   {"name": "runout_end", "time_s": 0.5, "tolerance_s": 0.05}],
+        "budget": {"frames": 30},
+        "provenance": {"predicted": {"peak_speed_m_s": 1.0}}, **extra}
+    return Spec.from_dict(d)
+
+
+# --- the spec's snapshots ---------------------------------------------------------------------
+def test_snapshots_ask_every_particle_at_their_steps_and_old_specs_encode_unchanged():
+    plain = spec()
+    assert "snapshots" not in plain.to_dict()  # absent: the spec encodes as before
+    s = spec(snapshots=[0.0105, 0.3])
+    assert Spec.from_dict(s.to_dict()) == s and s.to_dict()["snapshots"] == [0.0105, 0.3]
+    assert plain.request(10, 0.010, 0.009) is None
+    assert s.request(10, 0.010, 0.009) is None and s.request(12, 0.012, 0.011) is None
+    r = s.request(11, 0.011, 0.010)  # 0.0105 in (0.010, 0.011]
+    assert r.snapshot and r.regions is None and r.decimate == 1 and not r.visible_in
+    assert r.views == () and set(r.fields) == {"displacement"}
+    # merged with a view due at the same step: rendered as usual, every particle sent
+    due = s.request(300, 0.3, 0.2995)
+    assert due.snapshot and due.views == ("side",) and due.regions is None
+    assert plain.request(300, 0.3, 0.2995).regions is not None
+
+
+@pytest.mark.parametrize(("times", "problem"), [([0.2, 0.1], "snapshots: times must increase"),
+                                                ([-0.1], "snapshots")])
+def test_bad_snapshot_times_are_refused_by_name(times, problem):
+    with pytest.raises(SpecError, match=problem):
+        spec(snapshots=times)
+
+
+# --- the detector ---------------------------------------------------------------------------
+def stats_at(step: int, speeds_in: np.ndarray, speeds_out: np.ndarray = NONE,
+             rank: int = 0) -> Stats:
+    every = np.r_[speeds_in, speeds_out]
+    return Stats(RUN, rank, step, step * DT, len(every), float((every ** 2).sum()),
+                 float(every.max(initial=0.0)), 0.0, True, speed_histogram(speeds_in),
+                 speed_histogram(speeds_out))
+
+
+def flow_of(speed_of_t, until_s: float, outside=lambda t: 0.0, ranks: int = 2) -> LiveFlow:
+    """Stats every 5 ms from two ranks of 100 particles each moving at speed_of_t(t) m/s
+    (inside the regions) and a share outside(t) of them elsewhere."""
+    flow = LiveFlow(ranks)
+    for step in range(0, round(until_s / DT) + 1, 5):
+        t = step * DT
+        n_out = round(100 * outside(t))
+        for rank in range(ranks):
+            flow.add(stats_at(step, np.full(100 - n_out, speed_of_t(t)),
+                              np.full(n_out, speed_of_t(t)), rank))
+    return flow
+
+
+def collapse(onset_s: float, rest_s: float):
+    """Speed (m/s) of a collapse: rising from onset_s, peak 1 m/s halfway, rest at rest_s."""
+    mid = 0.5 * (onset_s + rest_s)
+    return lambda t: 0.0 if t < onset_s or t > rest_s else max(
+        0.0, 1.0 - abs(t - mid) / (mid - onset_s)) + 1e-3
+
+
+def test_a_stats_step_counts_once_every_rank_sent_it():
+    flow = LiveFlow(2)
+    assert flow.add(stats_at(0, np.zeros(10), rank=0)) == 0
+    assert flow.add(stats_at(0, np.zeros(10), rank=1)) == 1 and flow.count == 20
+
+
+def test_an_early_onset_is_a_departure_with_its_shift():
+    flow = flow_of(collapse(0.1, 0.5), 0.13)
+    d = Detector().check(spec(), flow)
+    assert d.kind == "early" and d.event == "failure_onset"
+    assert d.shift_s == pytest.approx(observed_events(
+        np.array(flow.time_s), flow.scale(), np.array(flow.ke), 1.0)["failure_onset"] - 0.2)
+    assert d.shift_s < -0.05 and "before the predicted" in d.reason
+
+
+def test_a_run_on_time_is_no_departure_and_a_flow_moving_at_the_predicted_rest_is():
+    on_time = flow_of(collapse(0.19, 0.47), 0.55)
+    det = Detector()
+    assert det.check(spec(), on_time) is None
+    late = flow_of(collapse(0.19, 0.7), 0.58)
+    d = Detector().check(spec(), late)
+    assert d.kind == "late" and d.event == "runout_end"
+    assert d.reason.startswith("the flow still moving at the predicted rest")
+    assert d.shift_s > 0.0
+
+
+def test_motion_outside_the_regions_is_a_departure_once_armed():
+    flow = flow_of(lambda t: 0.5 if t >= 0.2 else 0.0, 0.25, outside=lambda t: 0.1)
+    det = Detector()
+    s = Spec.from_dict({**spec().to_dict(), "events": []})
+    d = det.check(s, flow)
+    assert d.kind == "regions" and "90.0 %" in d.reason
+    det2 = Detector()
+    det2.armed_s = 0.25  # Stats measured under an older spec do not count
+    assert det2.check(s, flow) is None
+
+
+def test_shifted_moves_the_timeline_and_puts_seen_events_at_their_times():
+    s = shifted(spec(), -0.1, {"failure_onset": 0.09}, snapshots=[0.12, 0.125])
+    w = s.views[0].schedule[0]
+    assert (w.t_start_s, w.t_end_s) == pytest.approx((0.1, 0.3))
+    times = {e.name: e.time_s for e in s.events}
+    assert times == pytest.approx({"failure_onset": 0.09, "runout_start": 0.15,
+                                   "peak_motion": 0.2, "runout_end": 0.4})
+    assert s.snapshots == (0.12, 0.125)
+
+
+# --- the snapshots' coarse-graining -------------------------------------------------------------
+def lattice(n: int, spacing: float) -> np.ndarray:
+    g = (np.arange(n) + 0.5) * spacing
+    return np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_coarse_history_groups_as_the_training_data_in_any_particle_order():
+    fine, coarse = 0.01, 0.02
+    x0 = lattice(4, fine)
+    rng = np.random.default_rng(1)
+    frames = np.stack([x0 + k * rng.normal(0, 1e-3, x0.shape) for k in range(3)])
+    snaps = []
+    for k, x in enumerate(frames):
+        order = rng.permutation(len(x0))  # ranks send them in any order
+        snaps.append(Snapshot(k * FRAME_S, x[order], (x - x0)[order]))
+    history, start = coarse_history(snaps, coarse)
+    expected = coarse_grain(np.concatenate([x0[None], frames]), fine, 2)
+    assert history.shape == (3, 8, 3)
+    np.testing.assert_allclose(history, expected[1:], atol=1e-12)
+    np.testing.assert_allclose(start, expected[0], atol=1e-12)
+    with pytest.raises(ValueError, match="holds other particles"):
+        coarse_history([snaps[0], Snapshot(0.01, frames[1][:10], (frames[1] - x0)[:10])], coarse)
+
+
+# --- end to end on loopback ---------------------------------------------------------------------
+@pytest.fixture
+def daemon(server, tmp_path):
+    d = RenderServer(server, ServerOptions(spec(), tmp_path / "frames", tmp_path / "run.mcap",
+                                           timeout_s=30.0))
+    yield d
+    d.close()
+
+
+def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
+        daemon, client_factory, endpoint):
+    x0 = lattice(4, 0.01) + [0.3, 0.3, 0.0]  # 64 particles, 8 groups at the model's 0.02 m
+    got: dict = {}
+
+    def stub(model, stats, old, flow, snaps, scene, frames_left):
+        got.update(snaps=snaps, frames_left=frames_left)
+        new = shifted(old, 0.0, {}, snapshots=[])
+        return Spec.from_dict({**new.to_dict(), "events": [
+            {"name": "runout_end", "time_s": 0.3, "tolerance_s": 0.03}]}), {"stub": True}
+
+    follower = Follower(client_factory(), RUN, None, {"frame_interval_s": FRAME_S,
+                                                      "particle_spacing_m": 0.02},
+                        Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
+                        FollowOptions(ranks=1, wait_s=5.0), log=io.StringIO(), forecast=stub)
+    follower.fetch_spec()
+    thread = threading.Thread(target=follower.run, kwargs={"timeout_s": 60.0})
+    thread.start()
+    viz = connect(RUN, connect=(endpoint,), wait_s=5.0, log=io.StringIO(), report=False)
+    sent = {}
+    try:
+        x = x0.copy()
+        for step in range(0, 200):
+            t = (step + 1) * DT
+            v = np.zeros_like(x) if t < 0.05 else np.tile([0.5, 0.0, 0.0], (len(x), 1))
+            x = x + v * DT
+            if viz.due(step, t):
+                viz.publish(step, t, x, fields={"velocity": v, "displacement": x - x0},
+                            spacing_m=0.01)
+                if viz.spec.snapshot_due(t, t - DT):
+                    sent[round(t, 6)] = x.copy()
+            # every Stats sent (one per 5 ms) read by the follower, and its update taken by
+            # the rank, before the run goes on: the run waits for the follower, not the
+            # other way round (the sim's pace is not the test's)
+            stats = int(t / 0.005 + 1e-6)
+            assert wait_until(lambda n=stats: len(follower.flow.time_s) >= n)
+            assert wait_until(lambda: not follower._wanted or viz.spec.snapshots)
+            if follower.updates and follower.updates[-1].kind == "forecast":
+                break
+            if sent and len(sent) == 6:  # every snapshot sent: wait for the re-forecast
+                assert wait_until(lambda: any(u.kind == "forecast" for u in follower.updates))
+        final = follower.spec
+        assert wait_until(lambda: daemon.spec_updates == 2 and viz.spec == final)
+    finally:
+        viz.close()
+        follower.ended = True
+        thread.join(timeout=30)
+    kinds = [u.kind for u in follower.updates]
+    assert kinds == ["shift", "forecast"]
+    shift = follower.updates[0]
+    assert shift.detail["departure"] == "early" and shift.detail["event"] == "failure_onset"
+    assert daemon.spec == final and final.provenance["kind"] == "forecast"
+    assert final.provenance["update"] == 2 and final.provenance["forecast_s"] >= 0.0
+    assert not final.snapshots and [e.name for e in final.events] == ["runout_end"]
+    snaps = got["snaps"]
+    assert [s.time_s for s in snaps] == pytest.approx(sorted(sent))
+    for s in snaps:  # every particle, as the rank had it at that step
+        x_sent = sent[round(s.time_s, 6)]
+        order = np.lexsort(s.positions.T)
+        np.testing.assert_allclose(s.positions[order], x_sent[np.lexsort(x_sent.T)], atol=1e-6)
+        start = s.positions - s.displacement  # the initial lattice, whatever the order
+        np.testing.assert_allclose(start[np.lexsort(start.T)], x0[np.lexsort(x0.T)], atol=1e-6)
+    assert got["frames_left"] <= 30

@@ -169,9 +169,8 @@ class Oracle:
         ensemble's: the union over its members, widened to cover the events' intervals
         (the initiation's from the onset's earliest to the peak's latest, the runout's from
         the runout start's earliest to the runout end's latest)."""
-        own = self._own_windows()
         if len(self.each) == 1:
-            return own
+            return self._own_windows()
         out = {}
         for phase, (first, last) in {"initiation": ("failure_onset", "peak_motion"),
                                      "runout": ("runout_start", "runout_end")}.items():

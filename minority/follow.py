@@ -289,17 +289,21 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     t_join = r_t[c1 - 1]
     t, scale, ke = np.array(flow.time_s), flow.scale(), np.array(flow.ke)
     past = t <= t_join
-    ratio = 1.0
-    if past.any() and r_scale[c1 - 1] > 1e-6 and scale[past][-1] > 1e-6:
-        ratio = float(np.clip(scale[past][-1] / r_scale[c1 - 1], *CALIBRATION))
+    # the ratio over the history frames (the one stretch both measure), not one noisy frame
+    both = (t >= r_t[0]) & past
+    run_s = float(scale[both].mean()) if both.any() else 0.0
+    gns_s = float(r_scale[1:c1 - 1].mean()) if c1 > 2 else float(r_scale[c1 - 1])
+    ratio = float(np.clip(run_s / gns_s, *CALIBRATION)) if run_s > 1e-6 and gns_s > 1e-6 else 1.0
     after = r_t > (t[past][-1] if past.any() else -1.0)
     tt = np.r_[t[past], r_t[after]]
     e = events_from_series(tt, np.r_[scale[past], ratio * r_scale[after]],
                            np.r_[ke[past], ratio ** 2 * r_ke[after]])
     fast = fast_windows(tt, e.speed_scale_m_s)
     start = fast[0][0] if fast else e.peak_s  # as minority score reads the runout start
-    return {"failure_onset": e.onset_s, "runout_start": start, "peak_motion": e.peak_s,
-            "runout_end": e.runout_end_s}, ratio
+    at = {"failure_onset": e.onset_s, "runout_start": start, "peak_motion": e.peak_s,
+          "runout_end": e.runout_end_s}
+    # what the run already showed, by the online rules, over the joined series' reading
+    return {**at, **observed_events(t, scale, ke, float(ratio * r_scale.max()))}, ratio
 
 
 class _Segment(Oracle):

@@ -169,7 +169,11 @@ class Detector:
                 return Departure("early", e.name, now, got - e.time_s,
                                  f"{e.name} at {got:.3f} s, before the predicted "
                                  f"{lo:.3f}-{hi:.3f} s")
-            if got is None and now > hi + slack and ("late", e.name) not in self.acted:
+            # late: not for the runout start (read only once the peak is known; a late
+            # peak says it), nor for a peak while the kinetic energy no longer grows
+            rising = len(ke) < 3 or int(np.argmax(ke)) >= len(ke) - 2
+            if (got is None and now > hi + slack and ("late", e.name) not in self.acted
+                    and e.name != "runout_start" and (e.name != "peak_motion" or rising)):
                 self.acted.add(("late", e.name))
                 what = ("the flow still moving at the predicted rest" if e.name == "runout_end"
                         else f"no {e.name} yet")
@@ -269,7 +273,7 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
         v = np.diff(np.concatenate(traj)[-(n + 1):].astype(np.float64), axis=0)
         ke = (v * v).sum(axis=2).mean(axis=1)
         peak = max(peak, float(ke.max()))
-        if done >= 2 * chunk and ke.max() < REST_FRACTION * peak:
+        if done >= 2 * chunk and ke[-5:].mean() < REST_FRACTION * peak:
             break
     out = np.concatenate(traj)
     if done < frames:
@@ -475,16 +479,20 @@ class Follower:
                 kind, payload = self._q.get(timeout=0.1)
             except queue.Empty:
                 continue
-            self._take(kind, payload)
+            fresh = self._take(kind, payload)
+            while not self._q.empty():  # catch up with the run before judging it
+                fresh |= self._take(*self._q.get_nowait())
+            if fresh:
+                self._step()
         self.close()
         return self.updates
 
-    def _take(self, kind: str, payload: bytes) -> None:
+    def _take(self, kind: str, payload: bytes) -> bool:
+        """Take one message; whether it completed a Stats step."""
         from minority.protocol.messages import Chunk, Event, EventKind, Stats, decode_as
 
         if kind == "stats":
-            if self.flow.add(decode_as(payload, Stats)):
-                self._step()
+            return self.flow.add(decode_as(payload, Stats)) > 0
         elif kind == "timing":
             self.frames += 1
         elif kind == "event":
@@ -496,6 +504,7 @@ class Follower:
                 self.spec = spec  # ours come back; another peer's are followed too
         elif kind == "chunk":
             self._chunk(decode_as(payload, Chunk))
+        return False
 
     def _step(self) -> None:
         """A complete Stats step: look for a departure unless snapshots are awaited; retry

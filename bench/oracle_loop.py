@@ -87,6 +87,8 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "NUMBA_NUM_THREADS": str(threads)}
     log = out / "run.mcap"
+    for old in out.glob("run*.mcap"):  # the server never overwrites a log: start afresh
+        old.unlink()
     me = [sys.executable, "-m", "minority"]
     procs = []
     with open(out / "server.log", "w") as server_log, open(out / "follow.log", "w") as flog:
@@ -100,6 +102,12 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
                  "--connect", endpoint, "--threads", str(threads), "--timeout",
                  str(timeout_s)], stdout=flog, stderr=subprocess.STDOUT, env=env))
         try:
+            if closed:  # the follower reads the run from its first Stats on
+                deadline = time.monotonic() + 300
+                while "following run" not in (out / "follow.log").read_text():
+                    if procs[-1].poll() is not None or time.monotonic() > deadline:
+                        raise RuntimeError(f"the follower did not start: {out / 'follow.log'}")
+                    time.sleep(0.2)
             t0 = time.perf_counter()
             sim = subprocess.run([*me, "sim", str(scene), "--ranks", "2", "--run", RUN,
                                   "--connect", endpoint, "--wait", "60", "--out",

@@ -1,7 +1,7 @@
 """Lent steps: `InSitu.publish(..., copy=False)` hands the caller's arrays to the sender
 thread without copying them, as an ADIOS2 deferred put or an MPI_Isend does: the caller
-must not change them until `InSitu.reclaim` returns (the sender has culled and encoded
-every message that reads them). Its fields may then also be functions of no argument that
+must not change them until `InSitu.reclaim` returns (the sender has copied what the step's
+messages read, on its own thread, or dropped them). Its fields may then also be functions of no argument that
 return the array (e.g. `lambda: x - x0`), called on the sender thread, so the caller's
 thread neither allocates nor computes them.
 
@@ -14,14 +14,13 @@ bad lent step is not sent: the next `publish`, `reclaim` or `close` raises its V
 
 from __future__ import annotations
 
-import functools
 import math
 import threading
 import time
 from collections.abc import Callable
 
 import numpy as np
-from minority.insitu.payload import Particles
+from minority.insitu.payload import BufferPool, Particles
 
 
 class BadStep(ValueError):
@@ -84,32 +83,69 @@ def checked(p: Particles) -> Particles:
 
 
 class LentStep:
-    """A lent step's particles, checked once on the sender thread (its chunk and its Stats
-    both read them); `get` raises BadStep naming the step when they are bad."""
+    """A lent step's particles, for the sender thread. The first `get` computes the field
+    functions, copies what the step's messages read (`names`, into `pool`'s arrays), gives
+    the caller's arrays back (`release`, the loan's, called once), then checks the copy
+    (BadStep naming the step when it is bad): so the solver's next write waits for that copy
+    alone, not for the culling and encoding. `use` once per message that reads the step,
+    `done` when that message no longer needs it (built or dropped): the loan also ends once
+    no message needs the step."""
 
-    def __init__(self, step: int, particles: Particles):
+    def __init__(self, step: int, particles: Particles, names, pool: BufferPool,
+                 release: Callable[[], None]):
         self.step = step
-        self._given = particles
+        self._given: Particles | None = particles
+        self._names = tuple(names)
+        self._pool = pool
+        self._release: Callable[[], None] | None = release
+        self._users = 0
+        self._lock = threading.Lock()
         self._ready: Particles | None = None
         self._error: BadStep | None = None
+        # what the copy will hold at most: the caller's arrays it reads
+        self.nbytes = particles.positions.nbytes + particles.ids.nbytes + sum(
+            v.nbytes for v in particles.fields.values() if not callable(v))
 
-    @property
-    def n(self) -> int:
-        return self._given.n
+    def use(self) -> Callable[[], None]:
+        """One more message reads the step; returns its `done`."""
+        with self._lock:
+            self._users += 1
+        return self.done
 
-    @functools.cached_property
-    def nbytes(self) -> int:
-        """Bytes of the caller's arrays it reads (not copied)."""
-        return self._given.positions.nbytes + self._given.ids.nbytes + sum(
-            v.nbytes for v in self._given.fields.values() if not callable(v))
+    def done(self) -> None:
+        with self._lock:
+            self._users -= 1
+            last = self._users <= 0
+        if last:
+            self._give_back()
+
+    def settle(self) -> None:
+        """After the caller queued its messages: no message reads the step (none was
+        made, e.g. Stats without a velocity): the loan ends now."""
+        with self._lock:
+            unused = self._users <= 0
+        if unused:
+            self._give_back()
+
+    def _give_back(self) -> None:
+        with self._lock:
+            release, self._release, self._given = self._release, None, None
+        if release is not None:
+            release()
 
     def get(self) -> Particles:
         if self._ready is None and self._error is None:
             try:
-                self._ready = checked(self._given)
+                given = self._given
+                with_arrays = computed(given)
+                owned = {k for k, v in given.fields.items() if callable(v)}  # computed here
+                copy = with_arrays.snapshot(self._names, self._pool, owned)
+                self._give_back()
+                self._ready = checked(copy)
             except ValueError as exc:
                 self._error = BadStep(f"step {self.step}: {exc}")
-            self._given = None  # the arrays are back to the caller once built
+            finally:
+                self._give_back()
         if self._error is not None:
             raise self._error
         return self._ready

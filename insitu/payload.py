@@ -88,11 +88,12 @@ class Particles:
         given = self.fields[base]  # a function (a lent step's; insitu.lend): not called yet
         return callable(given) or given.ndim == 2
 
-    def snapshot(self, names, pool: BufferPool | None = None) -> Particles:
+    def snapshot(self, names, pool: BufferPool | None = None, owned=()) -> Particles:
         """A copy of what `names` read (positions, ids and each named field, or the vector a
         `X_magnitude` is computed from), for the sender thread to cull and encode after the
         caller has moved on and changed its arrays; into `pool`'s arrays, which go back to
-        it once the snapshot is gone."""
+        it once the snapshot is gone. Fields named in `owned` are nobody else's (computed
+        for this step): kept, not copied."""
         keep: dict[str, np.ndarray] = {}
         for name in names:
             base = name.removesuffix(MAGNITUDE)
@@ -102,10 +103,11 @@ class Particles:
                 keep[base] = self.fields[base]
         if pool is None:
             return Particles(self.positions.copy(), self.ids.copy(),
-                             {k: v.copy() for k, v in keep.items()})
+                             {k: v if k in owned else v.copy() for k, v in keep.items()})
+        copied = {k: pool.copy(v) for k, v in keep.items() if k not in owned}
         snap = Particles(pool.copy(self.positions), pool.copy(self.ids),
-                         {k: pool.copy(v) for k, v in keep.items()})
-        weakref.finalize(snap, pool.give, [snap.positions, snap.ids, *snap.fields.values()])
+                         {k: copied.get(k, v) for k, v in keep.items()})
+        weakref.finalize(snap, pool.give, [snap.positions, snap.ids, *copied.values()])
         return snap
 
     @property

@@ -403,12 +403,14 @@ class RankPublisher(Sender):
         names = (tuple(request.fields) if request is not None else ()) + (
             STATS_READS if stats else ())
         if lend:
-            snap = LentStep(step, particles)
+            snap = LentStep(step, particles, names, self._pool, self._loans.lend())
         else:
             snap = _Copied(particles.snapshot(names, self._pool))
         stats_item = self._stats_item(step, time_s, particles, snap, lend) if stats else None
         if request is None:
             self._put_stats(stats_item)
+            if lend:
+                snap.settle()
             return False
         for name in request.fields:
             if not particles.has(name):
@@ -421,7 +423,7 @@ class RankPublisher(Sender):
             return self._build_chunk(step, time_s, prev, request, spec, p, spacing_m, bounds)
 
         item = OutboxItem(keys.chunk(self.run, step, self.rank), None, CHUNK, build=build,
-                          nbytes=snap.nbytes, release=self._loans.lend() if lend else None)
+                          nbytes=snap.nbytes, release=snap.use() if lend else None)
         self._put_stats(stats_item)
         dropped = self._outbox.put(item)
         with self._lock:
@@ -520,7 +522,7 @@ class RankPublisher(Sender):
         with self._lock:
             self.stats.stats_s += time.perf_counter() - t0
         return OutboxItem(keys.stats(self.run), None, STATS, build=build, nbytes=snap.nbytes,
-                          release=self._loans.lend() if lend else None)
+                          release=snap.use() if lend else None)
 
     def _put_stats(self, item: OutboxItem | None) -> None:
         if item is not None:

@@ -187,3 +187,45 @@ def test_the_sim_lends_its_arrays_and_sends_what_it_would_copy(tmp_path):
                 sim.step(sim.fixed_dt)
     copied, lent = payloads(tmp_path / "False.mcap"), payloads(tmp_path / "True.mcap")
     assert len(copied) > 8 and lent == copied  # 8 chunks and the Stats
+
+
+def test_the_loan_ends_once_the_sender_has_copied_the_step_before_it_culls(tmp_path):
+    """The sender copies a lent step first and culls and encodes the copy: reclaim returns
+    while the chunk's build is still held up, and the caller's later writes do not reach it."""
+    x0 = block(300)
+    viz = record(tmp_path, "rec.mcap")
+    gate = threading.Event()
+    build = viz._pub._build_chunk
+
+    def held(*args, **kw):
+        gate.wait(10.0)
+        return build(*args, **kw)
+
+    viz._pub._build_chunk = held
+    try:
+        x, fields = fields_at(x0, 0)
+        assert viz.due(0, 0.0)
+        viz.publish(0, 0.0, x, fields=fields, spacing_m=SPACING_M, bounds_m=BOUNDS, copy=False)
+        viz.reclaim(timeout_s=10.0)  # the build is still held: the copy was enough
+        assert not gate.is_set() and viz._pub._loans.out == 0
+        x[:] = 99.0
+        gate.set()
+        assert viz.wait_sent(10.0)
+    finally:
+        gate.set()
+        viz.close()
+    chunk, = [m for m in messages(tmp_path / "rec.mcap") if isinstance(m, Chunk)]
+    assert np.array_equal(chunk.fields["positions"], x0.astype(np.float32))
+
+
+def test_a_lent_step_no_message_reads_is_given_back_at_once(tmp_path):
+    """Stats due without a velocity field (nothing is queued, the Stats counted dropped):
+    the arrays are not held."""
+    viz = record(tmp_path, "rec.mcap", schedule=[{"t_start_s": 1.0, "every_steps": 1}])
+    try:
+        assert viz.due(0, 0.0)  # the Stats cadence alone
+        viz.publish(0, 0.0, block(20), spacing_m=SPACING_M, copy=False)
+        assert viz.reclaim(timeout_s=0.0) == 0.0
+    finally:
+        stats = viz.close()
+    assert stats.stats_dropped == 1 and stats.missing_fields == ["velocity"]

@@ -127,7 +127,8 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
                     except subprocess.TimeoutExpired:
                         p.kill()
                         p.wait()
-    return log, wall
+    logs = sorted(out.glob("run*.mcap"), key=lambda f: f.stat().st_mtime)
+    return (logs[-1] if logs else log), wall
 
 
 def in_force_within(log: Path, result: dict) -> int:

@@ -93,8 +93,45 @@ def _serve_parser(sub) -> None:
                         "times, and an index of DIR's runs (frames, movies, reports, scores, "
                         "read-only). No password: name another address than loopback only "
                         "on a trusted network (default: off)")
+    g = p.add_argument_group("several render ranks (MPI)")
+    g.add_argument("--ranks", type=int, metavar="N",
+                   help="render ranks (default: 1, or what the MPI launcher started). N > 1 "
+                        "re-runs this command under the venv's mpiexec -n N "
+                        "-disable-auto-cleanup. Sim rank r's chunks go to render rank r %% N, "
+                        "which logs them to its own shard next to the log (FILE.render{k}.mcap"
+                        "; replay, report and score read the shards with it); rank 0 serves "
+                        "the spec, assembles the steps, writes the frames, publishes frames, "
+                        "timing and events; all ranks render each step together. One --spec, "
+                        "no --shadows")
+    g.add_argument("--max-sim-ranks", type=int, default=256, metavar="M",
+                   help="with N render ranks: subscribe to the chunks of sim ranks 0..M-1 "
+                        "(an error event says when a sim has more)")
+    g.add_argument("--rank-timeout", type=float, default=5.0, metavar="S",
+                   help="with N render ranks: a rank that sends no heartbeat for S seconds is "
+                        "dead; rank 0 then records an error event, ends the run (its log "
+                        "closed) and exits with status 1; the others exit when rank 0 is "
+                        "silent that long")
     _add_network(p)
     p.set_defaults(func=_cmd_serve, kernels=True)
+
+
+def _relaunch_serve(ranks: int, argv: list[str]) -> int:
+    """`python -m minority ARGV` under the venv's mpiexec -n RANKS (hydra, with
+    -disable-auto-cleanup: a killed rank does not take the others, rank 0 ends the run);
+    SIGINT and SIGTERM are passed on to it."""
+    from minority.sim.ranks import RELAUNCH_ENV, mpiexec_path
+
+    mpiexec = mpiexec_path()
+    if mpiexec is None:
+        return fail("serve", f"--ranks needs mpiexec, none found next to {sys.executable} or "
+                             f"on PATH: {NO_MPI}")
+    hydra = mpiexec.parent == Path(sys.executable).parent  # the mpich wheel's
+    cmd = [str(mpiexec), *(["-disable-auto-cleanup"] if hydra else []), "-n", str(ranks),
+           sys.executable, "-m", "minority", *argv]
+    proc = subprocess.Popen(cmd, env={**RELAUNCH_ENV, **__import__("os").environ})
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda s, _: proc.send_signal(s))
+    return proc.wait()
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -104,11 +141,37 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
     from minority.protocol.spec import Spec
     from minority.render_server.daemon import RenderServer, ServerOptions
+    from minority.sim.ranks import under_launcher
 
+    if args.ranks is not None and args.ranks < 1:
+        return fail("serve", "--ranks must be at least 1", BAD_INPUT)
+    if args.max_sim_ranks < 1 or not args.rank_timeout > 0:
+        return fail("serve", "--max-sim-ranks must be at least 1 and --rank-timeout above 0",
+                    BAD_INPUT)
+    if (args.ranks or 1) > 1 and (len(args.spec) > 1 or args.shadows):
+        return fail("serve", "several render ranks serve one --spec, without --shadows (a "
+                             "shadow ray crosses every rank's bricks)", BAD_INPUT)
     try:
         specs = [Spec.load(path) for path in args.spec]
     except (SpecError, OSError) as exc:
         return fail("serve", exc, BAD_INPUT)
+    if not under_launcher() and (args.ranks or 1) > 1:
+        return _relaunch_serve(args.ranks, args.argv)  # the same command under mpiexec
+    if under_launcher():
+        try:
+            from mpi4py import MPI
+        except (ImportError, RuntimeError) as exc:
+            return fail("serve", f"{NO_MPI} (mpi4py: {str(exc).splitlines()[0] if str(exc) else exc!r})")
+        size = MPI.COMM_WORLD.Get_size()
+        if args.ranks is not None and args.ranks != size:
+            return fail("serve", f"--ranks {args.ranks}, but the launcher started {size} "
+                                 "processes", BAD_INPUT)
+        if size > 1:
+            if len(specs) > 1 or args.shadows:
+                return fail("serve", "several render ranks serve one --spec, without "
+                                     "--shadows", BAD_INPUT)
+            from minority.serve_ranks import serve_ranks
+            return serve_ranks(args, specs[0], MPI.COMM_WORLD)
     runs = [s.run for s in specs]
     if len(set(runs)) < len(runs):
         return fail("serve", f"two specs name the same run ({', '.join(runs)}); a server "

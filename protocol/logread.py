@@ -29,6 +29,7 @@ from mcap.summary import Summary
 from minority.protocol.errors import ProtocolError
 from minority.protocol.messages import Chunk as ChunkMessage
 from minority.protocol.messages import Event, Frame, Stats, Timing, decode_as
+from minority.protocol.shards import merge_by_log_time, shard_paths
 from minority.protocol.spec import Spec
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first 8 bytes of every MCAP file
@@ -81,8 +82,20 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
     message of its completed chunks, then stops with a LogTruncatedWarning; a damaged chunk
     (its CRC does not match) stops it too, with a LogDamagedWarning (read through the index,
     a damaged chunk holding no wanted topic is not read, so not seen). A file that is not
-    MCAP raises ProtocolError."""
+    MCAP raises ProtocolError. The log of a server on N render ranks is read with its shards
+    (protocol.shards: `{stem}.render{k}{suffix}` next to it), merged by log time."""
     patterns = list(topics) if topics is not None else None
+    shards = shard_paths(path)
+    if shards:
+        yield from merge_by_log_time(_read_file(p, patterns, start_ns, end_ns, use_index)
+                                     for p in [Path(path), *shards])
+        return
+    yield from _read_file(path, patterns, start_ns, end_ns, use_index)
+
+
+def _read_file(path: str | Path, patterns: list[str] | None, start_ns: int | None,
+               end_ns: int | None, use_index: bool) -> Iterator[LogRecord]:
+    """read_log of one file."""
     with open(path, "rb") as f:
         magic = f.read(len(MCAP_MAGIC))
         if len(magic) == len(MCAP_MAGIC) and magic != MCAP_MAGIC:
@@ -97,16 +110,17 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None,
 
 def topic_counts(path: str | Path) -> dict[str, int] | None:
     """Messages per topic, from the summary's statistics without reading a message; None when
-    the log has no summary or statistics (read it: read_log)."""
-    with open(path, "rb") as f:
-        summary = _summary(f)
-    if summary is None or summary.statistics is None:
-        return None
+    the log (or one of its shards) has no summary or statistics (read it: read_log)."""
     counts: dict[str, int] = {}
-    for channel_id, n in summary.statistics.channel_message_counts.items():
-        channel = summary.channels.get(channel_id)
-        if channel is not None:
-            counts[channel.topic] = counts.get(channel.topic, 0) + n
+    for part in [Path(path), *shard_paths(path)]:
+        with open(part, "rb") as f:
+            summary = _summary(f)
+        if summary is None or summary.statistics is None:
+            return None
+        for channel_id, n in summary.statistics.channel_message_counts.items():
+            channel = summary.channels.get(channel_id)
+            if channel is not None:
+                counts[channel.topic] = counts.get(channel.topic, 0) + n
     return counts
 
 

@@ -10,10 +10,14 @@ is never blocked and memory stays bounded whatever the senders do.
 
 Only the server publishes frames, timing and server events (rank -1) of its runs: the same
 messages from anyone else are not logged.
+
+On N MPI ranks (`options.mpi`, render_server.serve_mpi) this is rank 0: it receives only its
+sim ranks' chunks, assembles from the other ranks' reports too, and renders collectively.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import struct
 import sys
@@ -65,15 +69,18 @@ class ServerOptions:
     # each run as they are logged (chunks excepted), on the receive and render threads: it
     # must return at once (enqueue, never wait); what it raises is reported, not fatal
     observer: Callable[[str, str, object], None] | None = None
+    # rank 0 of N render ranks (render_server.serve_mpi.Coordinator); None: one process
+    mpi: object | None = None
 
 
 class LatestStep:
     """A one-slot mailbox: the newest step wins; replaced steps are counted."""
 
-    def __init__(self):
+    def __init__(self, on_drop: Callable[[object], None] | None = None):
         self._cond = threading.Condition()
         self._step: AssembledStep | None = None
         self.replaced = 0
+        self._on_drop = on_drop  # called with each step dropped unrendered
 
     def put(self, step: AssembledStep) -> None:
         """Offer a step; an older step than the one waiting is the one dropped (steps may be
@@ -81,7 +88,10 @@ class LatestStep:
         with self._cond:
             if self._step is not None:
                 self.replaced += 1
-                if self._step.step > step.step:
+                dropped = step if self._step.step > step.step else self._step
+                if self._on_drop is not None:
+                    self._on_drop(dropped)
+                if dropped is step:
                     return
             self._step = step
             self._cond.notify()
@@ -122,7 +132,8 @@ class RenderServer:
         self._stop = threading.Event()
         self._last_error_event = 0.0
         self._errors_unreported = 0
-        self._latest = LatestStep()
+        self._mpi = options.mpi
+        self._latest = LatestStep(self._mpi.dropped if self._mpi is not None else None)
         self._canvases: dict[str, Canvas] = {}  # per view, reused frame after frame
         self._tokens: queue.SimpleQueue = queue.SimpleQueue()  # (rank, alive, monotonic ns)
         # the newest run; the next opens only once it has finished, so at most one is open
@@ -145,7 +156,8 @@ class RenderServer:
             if self._log is not None:
                 self._log.stop()
             raise
-        self._inbox = Inbox(session, keys.chunks(self.run), options.inbox_capacity,
+        self._inbox = Inbox(session, self._mpi.chunk_keys() if self._mpi is not None
+                            else keys.chunks(self.run), options.inbox_capacity,
                             options.inbox_bytes)
         # rank events, stats, and spec updates put by another peer (an oracle that follows
         # the run: minority oracle follow); the server's own put comes back and is ignored
@@ -201,6 +213,8 @@ class RenderServer:
         inst = self._run = RunInstance(
             self._seq, name, o.out_dir / name, writer,
             StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes))
+        if self._mpi is not None:  # the other ranks log their chunks next to this log
+            self._mpi.open_instance(writer.path if writer is not None else None)
         if self._log is not None:
             self._log.put(writer, keys.spec(self.run), self._spec_payload, time.time_ns(),
                           self.spec)
@@ -229,6 +243,8 @@ class RenderServer:
         self._publish_event(inst, EventKind.RUN_END, "run ended", self._summary(inst))
         if self._log is not None:
             self._log.close_writer(inst.writer)
+        if self._mpi is not None:
+            self._mpi.close_instance()
         inst.finished.set()
 
     # --- threads --------------------------------------------------------------------
@@ -237,6 +253,8 @@ class RenderServer:
             try:
                 self._take_tokens()
                 self._take_side()
+                if self._mpi is not None:
+                    self._take_reports()
             except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
                 self._error(f"handling a rank event failed: {exc!r}")
             item = self._inbox.get(timeout=RECEIVE_POLL_S)
@@ -332,12 +350,11 @@ class RenderServer:
                 chunk = None
             if self._log is not None:
                 self._log.put(inst.writer, item.key, item.payload, item.recv_ns, chunk)
+            if chunk is not None and self._mpi is not None:  # kept here, a stub assembled
+                report = self._mpi.local(chunk, item.recv_ns, len(item.payload))
+                chunk = self._mpi.admit(inst.assembler, report)
             if chunk is not None:
-                inst.stats.chunks += 1
-                inst.ranks_expected = max(inst.ranks_expected, chunk.ranks)
-                r = chunk.rank
-                inst.chunks_received[r] = inst.chunks_received.get(r, 0) + 1
-                self._release(inst.assembler.add(chunk, item.recv_ns, len(item.payload)))
+                self._add(inst, chunk, item.recv_ns, len(item.payload))
         inst = self._run
         if not inst.drained:
             self._release(inst.assembler.expire(now))
@@ -346,9 +363,45 @@ class RenderServer:
                 self._release(inst.assembler.drain(now))  # the run is over
                 inst.drained = True
 
+    def _add(self, inst: RunInstance, chunk: Chunk, recv_ns: int, nbytes: int) -> None:
+        inst.stats.chunks += 1
+        inst.ranks_expected = max(inst.ranks_expected, chunk.ranks)
+        r = chunk.rank
+        inst.chunks_received[r] = inst.chunks_received.get(r, 0) + 1
+        self._release(inst.assembler.add(chunk, recv_ns, nbytes))
+
+    def _take_reports(self) -> None:
+        """The other render ranks' chunks (serve_mpi.ChunkReport) and errors."""
+        while True:
+            try:
+                report = self._mpi.reports.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(report, str):
+                self._run.stats.rejected += "rejected chunk" in report
+                self._error(report)
+                continue
+            inst = self._active()
+            if inst is None:
+                return
+            self._add(inst, self._mpi.admit(inst.assembler, report), report.recv_ns,
+                      report.nbytes)
+            if self._mpi.too_many_sim_ranks:
+                self._error(f"the sim has {report.ranks} ranks, the render ranks receive the "
+                            f"chunks of the first {self._mpi.max_sim_ranks}: raise "
+                            "--max-sim-ranks")
+
     def _release(self, steps: list[AssembledStep]) -> None:
         """Complete each released step from the run's particle cache (every step, in
-        release order: a skipped step's context still counts), then offer it to render."""
+        release order: a skipped step's context still counts), then offer it to render.
+        On N ranks: every rank builds and completes its share (serve_mpi.Coordinator)."""
+        if self._mpi is not None:
+            for step in steps:
+                t0 = time.perf_counter()
+                share = self._mpi.release(step)
+                step.receive_s += time.perf_counter() - t0
+                self._latest.put(share)
+            return
         for step in steps:
             t0 = time.perf_counter()
             step = complete_step(self._run.cache, step)
@@ -386,9 +439,18 @@ class RenderServer:
                 self._finish_instance(self._run)  # every rank is done, its last step rendered
 
     def render_step(self, step: AssembledStep) -> None:
-        """Render every view the schedule asks for at this step; publish frames and timing."""
+        """Render every view the schedule asks for at this step; publish frames and timing.
+        On N ranks `step` is rank 0's serve_mpi.Share, rendered collectively."""
         inst = self._run
-        results = render_views(step, self.spec, self._canvases, self.options.shadows)
+        if self._mpi is not None:
+            results, _, totals = self._mpi.render(step, self.spec, self._canvases)
+            step = dataclasses.replace(step.meta, completed=totals.completed,
+                                       cached=totals.cached, cache_age_s=totals.cache_age_s,
+                                       cache_age_steps=totals.cache_age_steps)
+            particles = totals.particles
+        else:
+            results = render_views(step, self.spec, self._canvases, self.options.shadows)
+            particles = len(step.positions)
         if not results:
             return
         for r in results:
@@ -409,7 +471,7 @@ class RenderServer:
                           r.png)
             self._publish(inst, keys.frame(self.run, view.name), frame, FRAME_QOS)
             timing = Timing(self.run, step.step, view.name, step.time_s, step.receive_s,
-                            r.setup_s, r.render_s, step.nbytes, len(step.positions),
+                            r.setup_s, r.render_s, step.nbytes, particles,
                             step.ranks_expected, step.ranks_received, step.incomplete,
                             cached=step.cached, cache_age_s=step.cache_age_s,
                             cache_age_steps=step.cache_age_steps)
@@ -480,6 +542,19 @@ class RenderServer:
         """The counters of the open run (or of the last one)."""
         return self._summary(self._run)
 
+    def abort(self, reason: str) -> None:
+        """A render rank died (serve_mpi): say so, end the open run and close the log without
+        waiting for the render thread, which may be stuck in a collective with it. The
+        process must exit after this (os._exit: MPI cannot finalize)."""
+        self._stop.set()
+        self._last_error_event = 0.0  # the error event goes out, whatever came just before
+        self._error(reason)
+        self._threads[0].join(timeout=5.0)  # the receive thread; not the render thread
+        if not self._run.finished.is_set():
+            self._finish_instance(self._run)
+        if self._log is not None:
+            self._log.stop()
+
     def close(self) -> None:
         """Stop, render nothing more, end the open run, close the logs (idempotent)."""
         if self._stop.is_set():
@@ -493,5 +568,7 @@ class RenderServer:
         self._queryable.undeclare()
         if not self._run.finished.is_set():
             self._finish_instance(self._run)
+        if self._mpi is not None:
+            self._mpi.stop()
         if self._log is not None:
             self._log.stop()

@@ -1,6 +1,6 @@
 """The in situ API's cost to the simulation's thread: JSON lines per particle count and mode.
 
-    python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--mpm-steps S] [--threads T]
+    python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--threads T]
 
 {"bench": "insitu", "particles", "mode", "due_publish_s", "due_publish_cpu_s",
  "reclaim_wait_s", "snapshot_queue_s", "mpm_step_publishing_s", "chunk_bytes",
@@ -9,7 +9,8 @@
 
 The particles are our column scene's (column_13k, column_100k, column_1m), seeded and
 stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT excluded):
-* mpm_step_s: the median wall time of one MPM step at that size (the CFL step), alone;
+* mpm_step_s: the median wall time of one MPM step at that size (the CFL step) with nothing
+  published, from steps interleaved with the published ones (same load, same minutes);
 * due_publish_s: the median caller's time of a due step against a live `minority serve`
   process on loopback (a 320x240 view of every particle every step, coloured by
   displacement, plus Stats at every due step: the worst case): `viz.due` + building the
@@ -17,7 +18,8 @@ stepped by our MPM (`minority.sim.driver.Simulator`, warm-up steps and JIT exclu
   next MPM step makes before it writes the lent arrays (reclaim_wait_s; the sender builds
   beside the step, as in `minority sim`). mode "copy": publish copies what the step reads
   (the default); "lend": `publish(copy=False)`, the arrays read in place and the
-  displacement computed by the sender (insitu.lend). The two modes alternate step by step.
+  displacement computed by the sender (insitu.lend). The modes (and steps that publish
+  nothing) alternate step by step.
   due_publish_cpu_s: the caller's thread CPU time of due + publish; snapshot_queue_s: of
   that, the publisher's snapshot (or loan) and queueing of the chunk and Stats;
   mpm_step_publishing_s: the MPM step meanwhile (the sender shares the cores), without the
@@ -44,6 +46,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numba
@@ -81,17 +84,6 @@ def spec(size_m) -> Spec:
         "schedule": [{"every_steps": 1}]}]})
 
 
-def mpm_step_s(sim: Simulator, steps: int) -> float:
-    for _ in range(WARMUP_STEPS):
-        sim.step(sim.stable_dt())
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        sim.step(sim.stable_dt())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def step_once(viz, sim, step: int, time_s: float, spacing: float, bounds,
               lend: bool = False) -> tuple[float, float]:
     """One due step as sim.ranks makes it (copied, or lent as `minority sim` does): (wall s,
@@ -119,10 +111,11 @@ def copy_floor_s(sim: Simulator, calls: int = 10) -> float:
     return statistics.median(times)
 
 
-def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
+def measure(name: str, calls: int, threads: int | None) -> list[dict]:
     scene = load_scene(builtin_scene_path(name))
     sim = Simulator(scene, threads=threads)
-    step_s = mpm_step_s(sim, mpm_steps)
+    for _ in range(WARMUP_STEPS):
+        sim.step(sim.stable_dt())
     floor = copy_floor_s(sim)
     n = sim.particles.n
     spacing = scene.particle_spacing_m
@@ -139,7 +132,9 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
              str(Path(tmp) / "frames"), "--listen", endpoint],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            rows = publish_steps(sim, endpoint, n, calls, spacing, bounds)
+            rows = publish_steps(sim, endpoint, n, calls, spacing, bounds,
+                                 lambda stop: server.send_signal(
+                                     signal.SIGSTOP if stop else signal.SIGCONT))
             idle = idle_due_s(n)
         finally:
             server.send_signal(signal.SIGINT)
@@ -153,37 +148,47 @@ def measure(name: str, calls: int, mpm_steps: int, threads: int | None) -> dict:
     for mode, row in rows.items():
         out.append({"bench": "insitu", "particles": n, "mode": mode, **row,
                     "full_outbox_publish_s": round(full, 6), "idle_due_s": round(idle, 9),
-                    "mpm_step_s": round(step_s, 6), "copy_floor_s": round(floor, 6),
-                    "due_publish_over_mpm_step": round(row["due_publish_s"] / step_s, 4),
+                    "copy_floor_s": round(floor, 6),
                     "threads": numba.get_num_threads(), "scene": name})
     return out
 
 
-def publish_steps(sim, endpoint: str, n: int, calls: int, spacing, bounds) -> dict:
-    """Publish due steps to the server at `endpoint`, copied and lent in turn (`calls` of
-    each after warm-up ones), each followed by an MPM step as in `minority sim` (the sender
-    builds beside it; a lent step's particle writes wait for it: `Simulator.before_write`),
-    then waiting until the outbox is empty (so no step is refused). Per mode: medians of the
-    caller's costs, s."""
+def publish_steps(sim, endpoint: str, n: int, calls: int, spacing, bounds,
+                  pause_server: Callable[[bool], None]) -> dict:
+    """Steps against the server at `endpoint`, copied, lent and not published in turn
+    (`calls` of each after warm-up ones), each followed by an MPM step as in `minority sim`
+    (the sender builds beside it; a lent step's particle writes wait for the sender's copy:
+    `Simulator.before_write`), then waiting until the outbox is empty (so no step is
+    refused). Per mode: medians of the caller's costs and of the MPM step, s; the steps not
+    published give the MPM step alone, measured in the same minutes as the others with the
+    server paused (`pause_server(True)`: SIGSTOP; its numba threads would otherwise share the
+    cores with the MPM's, and spinning OpenMP threads of two processes slow both)."""
     options = PublishOptions(stats_every_s=1e-9)  # Stats at every step: the worst case
-    modes = {"copy": False, "lend": True}
+    modes = ("copy", "lend", "none")
     runs = {mode: {"wall": [], "cpu": [], "wait": [], "step": [], "prepare": []} for mode in modes}
     with connect(RUN, connect=(endpoint,), wait_s=60.0, particles=n, options=options) as viz:
         if viz.spec is None:
             raise RuntimeError("the render server did not answer within 60 s")
         sim.before_write = viz.reclaim
         try:
-            for k in range(2 * (WARMUP_CALLS + calls)):
-                mode = ("copy", "lend")[k % 2]
+            for k in range(len(modes) * (WARMUP_CALLS + calls)):
+                mode = modes[k % len(modes)]
                 st = viz.stats
                 prepare0 = st.prepare_s + st.stats_s
-                w, c = step_once(viz, sim, sim.step_count, sim.time_s, spacing, bounds,
-                                 modes[mode])
+                w = c = 0.0
+                if mode != "none":
+                    w, c = step_once(viz, sim, sim.step_count, sim.time_s, spacing, bounds,
+                                     mode == "lend")
+                else:
+                    viz.due(sim.step_count, sim.time_s)  # keeps the publisher's clock
+                    pause_server(True)
                 prepare = st.prepare_s + st.stats_s - prepare0
                 lent0, t0 = sim.times.lent, time.perf_counter()
                 sim.step(sim.stable_dt())
                 step_s = time.perf_counter() - t0
-                if k >= 2 * WARMUP_CALLS:
+                if mode == "none":
+                    pause_server(False)
+                if k >= len(modes) * WARMUP_CALLS:
                     wait = sim.times.lent - lent0  # the caller's, for this due step
                     r = runs[mode]
                     r["wall"].append(w + wait)
@@ -195,15 +200,21 @@ def publish_steps(sim, endpoint: str, n: int, calls: int, spacing, bounds) -> di
         finally:
             sim.before_write = None
         st = viz.stats
+    alone = statistics.median(runs["none"]["step"])
     common = {"chunk_bytes": st.bytes_sent // max(st.sent, 1),
               "sender_build_s": round(st.build_s / max(st.scheduled + st.stats_due, 1), 6),
-              "sent": st.sent, "dropped": st.dropped}
-    return {mode: {"due_publish_s": round(statistics.median(r["wall"]), 6),
-                   "due_publish_cpu_s": round(statistics.median(r["cpu"]), 6),
-                   "reclaim_wait_s": round(statistics.median(r["wait"]), 6),
-                   "snapshot_queue_s": round(statistics.median(r["prepare"]), 6),
-                   "mpm_step_publishing_s": round(statistics.median(r["step"]), 6), **common}
-            for mode, r in runs.items()}
+              "sent": st.sent, "dropped": st.dropped, "mpm_step_s": round(alone, 6)}
+    out = {}
+    for mode in ("copy", "lend"):
+        r = runs[mode]
+        wall = statistics.median(r["wall"])
+        out[mode] = {"due_publish_s": round(wall, 6),
+                     "due_publish_cpu_s": round(statistics.median(r["cpu"]), 6),
+                     "reclaim_wait_s": round(statistics.median(r["wait"]), 6),
+                     "snapshot_queue_s": round(statistics.median(r["prepare"]), 6),
+                     "mpm_step_publishing_s": round(statistics.median(r["step"]), 6),
+                     "due_publish_over_mpm_step": round(wall / alone, 4), **common}
+    return out
 
 
 def idle_due_s(n: int, calls: int = 10_000) -> float:
@@ -273,8 +284,6 @@ def main() -> None:
                              "minutes)")
     parser.add_argument("--calls", type=int, default=CALLS,
                         help=f"timed due + publish calls per size (default {CALLS})")
-    parser.add_argument("--mpm-steps", type=int, default=5,
-                        help="timed MPM steps per size (default 5)")
     parser.add_argument("--threads", type=int, default=None,
                         help="numba threads of the MPM (default: numba's)")
     args = parser.parse_args()
@@ -282,7 +291,7 @@ def main() -> None:
         if size not in SIZES:
             parser.error(f"--sizes: unknown size {size!r} (known: {', '.join(SIZES)})")
     for size in args.sizes.split(","):
-        for row in measure(SIZES[size], args.calls, args.mpm_steps, args.threads):
+        for row in measure(SIZES[size], args.calls, args.threads):
             print(json.dumps(row), flush=True)
 
 

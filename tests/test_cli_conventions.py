@@ -37,7 +37,7 @@ OUTPUT = {("serve",): "DIR", ("sim",): "FILE.h5", ("replay",): "DIR", ("report",
           ("oracle", "evaluate"): "FILE.json", ("oracle", "diagnose"): None,
           ("oracle", "ship"): "OUT.pt", ("oracle", "rollout"): "DIR",
           ("oracle", "spec"): "FILE.json", ("oracle", "preview"): "FILE.png",
-          ("oracle", "export-npz"): "DIR"}
+          ("oracle", "export-npz"): "DIR", ("oracle", "follow"): None}
 MISSING = "no/such/input"
 # each command with input that is not there, or a bad value (exit status 2, nothing written)
 BAD_INPUT = {("serve",): ["--spec", MISSING], ("sim",): ["no_such_scene"],
@@ -49,7 +49,8 @@ BAD_INPUT = {("serve",): ["--spec", MISSING], ("sim",): ["no_such_scene"],
              ("oracle", "evaluate"): [MISSING, MISSING],
              ("oracle", "diagnose"): [MISSING, MISSING], ("oracle", "ship"): [MISSING],
              ("oracle", "rollout"): [MISSING, "tiny"], ("oracle", "spec"): [MISSING],
-             ("oracle", "preview"): [MISSING, MISSING], ("oracle", "export-npz"): [MISSING]}
+             ("oracle", "preview"): [MISSING, MISSING], ("oracle", "export-npz"): [MISSING],
+             ("oracle", "follow"): ["r", "--scene", "no_such_scene"]}
 
 
 def test_the_tables_name_every_command():

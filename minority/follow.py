@@ -48,6 +48,10 @@ from minority.protocol.spec import Spec
 REGIONS_TARGET = 0.99  # share of the moving particles the regions must hold
 PEAK_FALL = 0.9  # the kinetic-energy peak is past once it falls below this share of its max
 REST_FRACTION = 0.01  # gns.events: rest is the kinetic energy below 1 % of its peak
+RESERVE_SHARE = 0.25  # of the frames left, kept for later updates while re-forecasts remain
+REST_FRAMES = 6  # frames of a forecast that sees the flow at rest by its adoption (the least)
+PLAN_WALL_S = 1.0  # first guess of the planning's wall time after the rollout, s
+RATE_WINDOW_S = 5.0  # the run's progress rate is measured over this much wall time, s
 CALIBRATION = (0.5, 2.0)  # bounds of the run / forecast speed ratio at the join
 QUEUE_MESSAGES = 65536  # messages queued for the follower's thread at most
 
@@ -65,11 +69,14 @@ class LiveFlow:
         self.hist_in: list[np.ndarray] = []  # [bins] those inside the open regions
         self.ke: list[float] = []  # mean |v|^2, m^2/s^2
         self.windows_open: list[bool] = []
+        self.wall_s: list[float] = []  # monotonic wall time each step arrived complete, s
         self.count = 0
         self._seen = 0
 
-    def add(self, stats) -> int:
-        """Take one rank's Stats; returns how many steps became complete."""
+    def add(self, stats, wall_s: float | None = None) -> int:
+        """Take one rank's Stats (wall_s: when it arrived, monotonic s; default now);
+        returns how many steps became complete."""
+        self._wall = time.monotonic() if wall_s is None else wall_s
         self._pending[stats.step].append(stats)
         self._seen = max(self._seen, len({s.rank for s in self._pending[stats.step]}))
         need = self.ranks or self._seen
@@ -94,7 +101,18 @@ class LiveFlow:
         self.hist_in.append(hin)
         self.ke.append(sum(s.speed_sq_sum_m2_s2 for s in rows) / max(count, 1))
         self.windows_open.append(rows[0].windows_open)
+        self.wall_s.append(self._wall)
         self.count = max(self.count, count)
+
+    def rate(self) -> float | None:
+        """The run's progress, s of simulated time per s of wall time, over the steps that
+        arrived in the last RATE_WINDOW_S of wall time; None before two steps of it."""
+        if len(self.wall_s) < 2:
+            return None
+        w = np.array(self.wall_s)
+        k = max(0, min(int(np.searchsorted(w, w[-1] - RATE_WINDOW_S)), len(w) - 2))
+        span = w[-1] - w[k]
+        return (self.time_s[-1] - self.time_s[k]) / span if span > 0 else None
 
     @property
     def now_s(self) -> float:
@@ -202,20 +220,34 @@ class Detector:
                          f"particles inside at {flow.now_s:.3f} s")
 
 
-def shifted(spec: Spec, shift_s: float, seen: dict[str, float], **changes) -> Spec:
+def shifted(spec: Spec, shift_s: float, seen: dict[str, float], now_s: float | None = None,
+            end_s: float | None = None, **changes) -> Spec:
     """The spec with its timeline (windows, events) moved by shift_s (s, within t >= 0), the
-    events in `seen` put at their observed times (s), and `changes` to its JSON fields."""
+    events in `seen` put at their observed times (s), and `changes` to its JSON fields.
+    end_s (the run's end, s) with now_s (the run's time, s): a timeline moved past the end
+    is squeezed into [now_s, end_s] (window times after now_s and cadences scaled alike, so
+    the frames stay as many), events put no later than the end."""
     d = spec.to_dict()
     move = lambda x: None if x is None else max(0.0, x + shift_s)  # noqa: E731
-    for v in d["views"]:
-        for w in v["schedule"]:
-            w["t_start_s"], w["t_end_s"] = move(w["t_start_s"]), move(w["t_end_s"])
+    windows = [w for v in d["views"] for w in v["schedule"]]
+    for w in windows:
+        w["t_start_s"], w["t_end_s"] = move(w["t_start_s"]), move(w["t_end_s"])
+    last = max((w["t_end_s"] for w in windows if w["t_end_s"] is not None), default=None)
+    if end_s is not None and now_s is not None and last is not None and now_s < end_s < last:
+        k = (end_s - now_s) / (last - now_s)
+        squeeze = lambda x: x if x is None or x <= now_s else now_s + (x - now_s) * k  # noqa: E731
+        for w in windows:
+            w["t_start_s"], w["t_end_s"] = squeeze(w["t_start_s"]), squeeze(w["t_end_s"])
+            if w.get("every_s"):
+                w["every_s"] *= k
     for e in d["events"]:
         at = seen.get(e["name"])
         delta = (at - e["time_s"]) if at is not None else shift_s
-        for k in ("time_s", "earliest_s", "latest_s"):
-            if k in e:
-                e[k] = max(0.0, e[k] + delta)
+        for key in ("time_s", "earliest_s", "latest_s"):
+            if key in e:
+                e[key] = max(0.0, e[key] + delta)
+                if end_s is not None:
+                    e[key] = min(e[key], end_s)
     d.update(changes)
     return Spec.from_dict(d)
 
@@ -312,14 +344,15 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
 
 class _Segment(Oracle):
     """The oracle of a rollout that starts mid-run: frame 0 of `positions` is at t0_s (s);
-    the windows follow the run's joined events `at` (absolute s); displacement is measured
-    from the initial positions x0 [m, 3] (m). Its spec is in the segment's time: `absolute`
-    moves it onto the run's."""
+    the windows follow the run's joined events `at` (absolute s), none before from_s (s:
+    when the spec will be adopted); displacement is measured from the initial positions x0
+    [m, 3] (m). Its spec is in the segment's time: `absolute` moves it onto the run's."""
 
     def __init__(self, positions, dt, bounds_m, spacing_m, options, t0_s: float,
-                 at: dict[str, float], x0: np.ndarray):
+                 at: dict[str, float], x0: np.ndarray, from_s: float | None = None):
         super().__init__(positions, dt, bounds_m, spacing_m, options)
         self.t0, self.at = t0_s, at
+        self.from_s = t0_s if from_s is None else max(t0_s, from_s)
         d = np.linalg.norm(self.positions - x0[None], axis=2)
         self.displacement = (float(d.min()), float(d.max()))
         self.travel_m = self.displacement[1]
@@ -327,12 +360,18 @@ class _Segment(Oracle):
     def _own_windows(self) -> dict[str, tuple[float, float]]:
         e = {k: max(0.0, v - self.t0) for k, v in self.at.items()}
         end, pad = self.events.duration_s, self.dt
-        runout = (max(0.0, e["runout_start"] - pad),
-                  min(max(e["runout_end"], e["runout_start"] + pad) + pad, end))
-        if e["peak_motion"] <= pad:  # the initiation is past: the side view follows the runout
-            return {"initiation": runout, "runout": runout}
+        first = min(self.from_s - self.t0, max(0.0, end - pad))  # nothing before adoption
+
+        def adopted(a: float, b: float) -> tuple[float, float]:
+            a = min(max(a, first), end)
+            return a, min(max(b, a + pad), end)
+
+        runout = adopted(max(0.0, e["runout_start"] - pad),
+                         max(e["runout_end"], e["runout_start"] + pad) + pad)
         failing = max(e["peak_motion"], e["failure_onset"] + pad)
-        return {"initiation": (max(0.0, e["failure_onset"] - pad), min(failing + pad, end)),
+        if e["peak_motion"] <= pad or failing + pad <= first + pad:
+            return {"initiation": runout, "runout": runout}  # the side view follows the runout
+        return {"initiation": adopted(max(0.0, e["failure_onset"] - pad), failing + pad),
                 "runout": runout}
 
     def absolute(self, spec: Spec, **provenance) -> Spec:
@@ -363,12 +402,19 @@ class Scene:
     duration_s: float  # simulated, s
 
 
+class TooLate(ValueError):
+    """The re-forecast would be adopted after the run's end."""
+
+
 def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snapshot],
-               scene: Scene, frames_left: int) -> tuple[Spec, dict]:
+               scene: Scene, plan) -> tuple[Spec, dict]:
     """The spec of the rest of the run from the snapshots ([C + 1] one model frame apart):
-    coarse-grain, roll the GNS to rest, join the events, plan (gns.oracle) within
-    frames_left frames. stats: the checkpoint's (particle_spacing_m, frame_interval_s).
-    Returns the spec (snapshots cleared) and what its provenance records."""
+    coarse-grain, roll the GNS to rest, then ask plan() -> (from_s, frames): when the spec
+    will be adopted (s of the run's time) and how many frames it may plan; join the events
+    and plan (gns.oracle) windows from from_s on within those frames (REST_FRAMES when the
+    joined forecast has the flow at rest by then). stats: the checkpoint's
+    (particle_spacing_m, frame_interval_s). Returns the spec (snapshots cleared) and what
+    its provenance records; TooLate when from_s is past the run's last model frame."""
     t_start = time.perf_counter()
     dt, spacing = float(stats["frame_interval_s"]), float(stats["particle_spacing_m"])
     history, x0 = coarse_history(snaps, spacing)
@@ -378,17 +424,27 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     peak_ke = max(flow.ke) if flow.ke else 0.0
     traj = roll_to_rest(model, history, scene.friction_deg, scene.bounds_m, frames,
                         peak_ke * dt * dt)  # the run's peak mean |v|^2, as (m per frame)^2
+    t_plan = time.perf_counter()
+    from_s, frames_left = plan()  # the run has moved on while the GNS rolled
+    if from_s > scene.duration_s - dt:
+        raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
+                      f"{scene.duration_s:.3f} s")
     at, ratio = joined_events(flow, t0, dt, traj, c1)
+    if at["runout_end"] <= from_s:  # at rest by then: the least spec, the rest kept
+        frames_left = min(frames_left, REST_FRAMES)
     v0 = spec.to_dict()["views"][0]
-    options = OracleOptions(run=spec.run, frames=max(frames_left, 6), width=v0["width"],
+    options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(spec.views), 6),
+                            width=v0["width"],
                             height=v0["height"],
                             colormap=v0["colormap"] if isinstance(v0["colormap"], str)
                             else OracleOptions.colormap,
                             occlusion_cull=all(v.occlusion_cull for v in spec.views))
-    seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0)
+    seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0, from_s)
+    new = seg.spec()
     info = {"particles": int(history.shape[1]), "rollout_frames": int(len(traj) - c1),
-            "calibration": ratio, "forecast_s": time.perf_counter() - t_start}
-    return seg.absolute(seg.spec(), **{"forecast": info}), info
+            "calibration": ratio, "from_s": from_s, "frames_planned": options.frames,
+            "plan_s": time.perf_counter() - t_plan, "forecast_s": time.perf_counter() - t_start}
+    return seg.absolute(new, **{"forecast": info}), info
 
 
 # --- the follower ----------------------------------------------------------------------------
@@ -421,8 +477,8 @@ class Follower:
 
     def __init__(self, session, run: str, model, stats: dict, scene: Scene,
                  options: FollowOptions | None = None, log=None, forecast=reforecast):
-        """forecast: (model, stats, spec, flow, snapshots, scene, frames_left) -> (Spec,
-        info), reforecast unless a test stubs it."""
+        """forecast: (model, stats, spec, flow, snapshots, scene, plan) -> (Spec, info),
+        reforecast unless a test stubs it (plan() -> (from_s, frames): see reforecast)."""
         from minority.protocol import keys
 
         self.session, self.run_id, self.model, self.stats = session, run, model, stats
@@ -432,8 +488,10 @@ class Follower:
         self.flow = LiveFlow(self.o.ranks)
         self.detector = Detector(self.o.interval_s)
         self.spec: Spec | None = None
+        self.budget_total = 0  # frames, all updates together: the first spec's budget
         self.updates: list[Update] = []
         self.frames = 0  # rendered so far (the server's Timing messages)
+        self._plan_wall = PLAN_WALL_S  # the last re-forecast's planning wall time, s
         self._q: queue.Queue = queue.Queue(QUEUE_MESSAGES)
         self.dropped = 0  # messages dropped on a full queue
         self._subs = [session.declare_subscriber(k, self._on(kind)) for k, kind in (
@@ -446,9 +504,9 @@ class Follower:
         self.ended = False
 
     def _on(self, kind: str):
-        def take(sample) -> None:  # zenoh's thread: enqueue only
+        def take(sample) -> None:  # zenoh's thread: enqueue only, with the arrival time
             try:
-                self._q.put_nowait((kind, sample.payload.to_bytes()))
+                self._q.put_nowait((kind, sample.payload.to_bytes(), time.monotonic()))
             except queue.Full:
                 self.dropped += 1
         return take
@@ -461,11 +519,19 @@ class Follower:
         while time.monotonic() < deadline:
             for reply in self.session.get(keys.spec(self.run_id), timeout=2.0):
                 if reply.ok:
-                    self.spec = decode_as(reply.ok.payload.to_bytes(), Spec)
+                    self._adopt(decode_as(reply.ok.payload.to_bytes(), Spec))
                     return self.spec
             time.sleep(0.2)
         raise TimeoutError(f"no server serves the spec of run {self.run_id!r} "
                            f"(waited {self.o.wait_s:g} s)")
+
+    def _adopt(self, spec: Spec) -> None:
+        """The spec in force; the budget of all updates together is the first one's (a
+        re-forecast's own budget is what it had left: its provenance keeps the total)."""
+        self.spec = spec
+        if not self.budget_total:
+            self.budget_total = int(spec.provenance.get("budget_total_frames")
+                                    or spec.budget.frames or 120)
 
     def run(self, stop=None, timeout_s: float | None = None) -> list[Update]:
         """Follow until the server says the run ended (or `stop` is set, or timeout_s)."""
@@ -476,23 +542,29 @@ class Follower:
             if deadline is not None and time.monotonic() > deadline:
                 break
             try:
-                kind, payload = self._q.get(timeout=0.1)
+                item = self._q.get(timeout=0.1)
             except queue.Empty:
                 continue
-            fresh = self._take(kind, payload)
-            while not self._q.empty():  # catch up with the run before judging it
-                fresh |= self._take(*self._q.get_nowait())
+            fresh = self._take(*item) | self._catch_up()  # the run as it is, then judge it
             if fresh:
                 self._step()
         self.close()
         return self.updates
 
-    def _take(self, kind: str, payload: bytes) -> bool:
-        """Take one message; whether it completed a Stats step."""
+    def _catch_up(self) -> bool:
+        """Take every queued message; whether one completed a Stats step."""
+        fresh = False
+        while not self._q.empty():
+            fresh |= self._take(*self._q.get_nowait())
+        return fresh
+
+    def _take(self, kind: str, payload: bytes, wall_s: float | None = None) -> bool:
+        """Take one message (arrived at wall_s, monotonic s); whether it completed a Stats
+        step."""
         from minority.protocol.messages import Chunk, Event, EventKind, Stats, decode_as
 
         if kind == "stats":
-            return self.flow.add(decode_as(payload, Stats)) > 0
+            return self.flow.add(decode_as(payload, Stats), wall_s) > 0
         elif kind == "timing":
             self.frames += 1
         elif kind == "event":
@@ -501,7 +573,7 @@ class Follower:
         elif kind == "spec":
             spec = decode_as(payload, Spec)
             if spec.run == self.run_id:
-                self.spec = spec  # ours come back; another peer's are followed too
+                self._adopt(spec)  # ours come back; another peer's are followed too
         elif kind == "chunk":
             self._chunk(decode_as(payload, Chunk))
         return False
@@ -538,8 +610,8 @@ class Follower:
         t = np.array(self.flow.time_s)
         seen = observed_events(t, self.flow.scale(), np.array(self.flow.ke), float(
             self.spec.provenance.get("predicted", {}).get("peak_speed_m_s", 0.0)))
-        spec = shifted(self.spec, 0.0 if retry else d.shift_s, seen,
-                       snapshots=list(self._wanted))
+        spec = shifted(self.spec, 0.0 if retry else d.shift_s, seen, now_s=self.flow.now_s,
+                       end_s=self.scene.duration_s, snapshots=list(self._wanted))
         self._put(spec, Update(len(self.updates) + 1, "shift", d.reason, self.flow.now_s, 0.0,
                                {"shift_s": 0.0 if retry else d.shift_s, "departure": d.kind,
                                 "event": d.event, "snapshots_s": list(self._wanted)}))
@@ -565,25 +637,41 @@ class Follower:
         self._chunks, self._wanted = None, ()
         self._forecast(snaps)
 
+    def plan(self) -> tuple[float, int]:
+        """(from_s, frames) of a re-forecast about to be planned: the run's time when its
+        spec will be adopted, s (the newest Stats, caught up, plus the planning's expected
+        wall time at the run's progress rate, plus a stats interval), and the frames left
+        of the budget, less RESERVE_SHARE of them while more re-forecasts may follow."""
+        self._catch_up()
+        rate = self.flow.rate() or 0.0
+        from_s = self.flow.now_s + rate * self._plan_wall + self.o.interval_s
+        left = self.budget_total - self.frames
+        more = sum(u.kind == "forecast" for u in self.updates) + 1 < self.o.max_updates
+        self._planned = (from_s, rate, left)
+        return from_s, left - (round(RESERVE_SHARE * left) if more else 0)
+
     def _forecast(self, snaps: list[Snapshot]) -> None:
         d = self._pending
         t0 = time.perf_counter()
-        budget = self.spec.budget.frames or 120
+        self._planned = (None, None, self.budget_total - self.frames)
         try:
             spec, info = self.forecast(self.model, self.stats, self.spec, self.flow, snaps,
-                                       self.scene, budget - self.frames)
+                                       self.scene, self.plan)
         except Exception as exc:  # noqa: BLE001 - a failed forecast leaves the spec in force
             print(f"oracle follow: the re-forecast failed: {exc!r}", file=self.log, flush=True)
             return
         wall = time.perf_counter() - t0
+        self._plan_wall = float(info.get("plan_s", self._plan_wall))
+        from_s, rate, left = self._planned
         k = len(self.updates) + 1
         spec = Spec.from_dict({**spec.to_dict(), "run": self.run_id, "provenance": {
             **spec.provenance, "reason": d.reason, "kind": "forecast", "update": k,
             "from_t_s": snaps[0].time_s, "forecast_s": wall,
-            "budget_total_frames": budget, "frames_before": self.frames}})
+            "budget_total_frames": self.budget_total, "frames_before": self.frames}})
         self.detector.armed_s = self.flow.now_s + 2 * self.o.interval_s
         self._put(spec, Update(k, "forecast", d.reason, self.flow.now_s, wall,
-                               {"from_t_s": snaps[0].time_s, "frames_left": budget - self.frames,
+                               {"from_t_s": snaps[0].time_s, "frames_left": left,
+                                "adopt_from_s": from_s, "rate_s_per_s": rate,
                                 "events": {e.name: round(e.time_s, 4) for e in spec.events},
                                 **{k_: v for k_, v in info.items() if k_ != "forecast_s"}}))
 
@@ -596,7 +684,7 @@ class Follower:
                 **spec.provenance, "reason": u.reason, "kind": "shift", "update": u.update,
                 "from_t_s": u.at_t_s, "forecast_s": 0.0}})
             self.detector.armed_s = self.flow.now_s + 2 * self.o.interval_s
-        self.spec = spec
+        self._adopt(spec)
         put(self.session, keys.spec(self.run_id), spec.encode(), CONTROL_QOS)
         self.updates.append(u)
         print(u.line(), file=self.log, flush=True)

@@ -150,6 +150,68 @@ def test_shifted_moves_the_timeline_and_puts_seen_events_at_their_times():
     assert s.snapshots == (0.12, 0.125)
 
 
+def test_a_timeline_shifted_past_the_run_end_is_squeezed_into_what_is_left():
+    s = shifted(spec(), 0.7, {}, now_s=0.8, end_s=1.0)  # windows 0.9-1.1, rest at 1.2
+    w = s.views[0].schedule[0]
+    assert (w.t_start_s, w.t_end_s) == pytest.approx((0.8 + 0.1 * 0.2 / 0.3, 1.0))
+    assert w.every_s == pytest.approx(0.05 * 0.2 / 0.3)  # as many frames as before
+    assert max(e.time_s for e in s.events) == pytest.approx(1.0)
+    inside = shifted(spec(), 0.1, {}, now_s=0.3, end_s=1.0).views[0].schedule[0]
+    assert (inside.t_start_s, inside.t_end_s, inside.every_s) == pytest.approx((0.3, 0.5, 0.05))
+
+
+def test_the_progress_rate_is_simulated_over_wall_time_of_the_latest_stats():
+    flow = LiveFlow(1)
+    assert flow.rate() is None
+    for k in range(40):  # a Stats step every 5 ms of simulated time, every 0.25 s of wall
+        flow.add(stats_at(5 * k, np.zeros(4)), wall_s=100.0 + 0.25 * k)
+    assert flow.rate() == pytest.approx(0.005 / 0.25)
+
+
+class _Session:  # what a Follower declares on, no network
+    def declare_subscriber(self, key, handler):
+        return type("Sub", (), {"undeclare": lambda self: None})()
+
+
+def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates():
+    stats = {"frame_interval_s": FRAME_S, "particle_spacing_m": 0.02}
+    f = Follower(_Session(), RUN, None, stats, Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
+                 FollowOptions(ranks=1, max_updates=3), log=io.StringIO())
+    f._adopt(spec())
+    # a re-forecast's own budget is what it had left; the total stays the first spec's
+    f._adopt(Spec.from_dict({**spec().to_dict(), "budget": {"frames": 8},
+                             "provenance": {"budget_total_frames": 30}}))
+    assert f.budget_total == 30
+    for k in range(21):  # the run at 0.1 s, 0.1 s of run per s of wall
+        f.flow.add(stats_at(5 * k, np.zeros(4)), wall_s=10.0 + 0.05 * k)
+    f.frames = 10
+    from_s, frames = f.plan()
+    assert from_s == pytest.approx(0.1 + 0.1 * 1.0 + 0.005)  # + the planning's wall time
+    assert frames == 20 - 5  # 20 left, a quarter kept
+    f.updates = [type("U", (), {"kind": "forecast"})()] * 2  # the last re-forecast: all
+    assert f.plan()[1] == 20
+
+
+def test_a_segment_plans_no_window_before_its_adoption():
+    from minority.gns.oracle import OracleOptions
+
+    from minority.follow import _Segment
+
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(0.0, 0.2, (200, 3))
+    t = np.arange(60) * FRAME_S  # a flow over frames 5-35 of the segment
+    v = np.clip(np.sin(np.pi * (t - 0.025) / 0.15), 0.0, None) * (t >= 0.025) * (t <= 0.175)
+    x = x0[None] + np.cumsum(v * FRAME_S)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    at = {"failure_onset": 0.525, "runout_start": 0.55, "peak_motion": 0.6, "runout_end": 0.7}
+    bounds = np.array([[0, 1.0]] * 3)
+    whole = _Segment(x, FRAME_S, bounds, 0.01, OracleOptions(frames=30), 0.5, at, x0)
+    late = _Segment(x, FRAME_S, bounds, 0.01, OracleOptions(frames=30), 0.5, at, x0, 0.62)
+    assert min(w.t_start_s for v in whole.absolute(whole.spec()).views
+               for w in v.schedule) < 0.55
+    starts = [w.t_start_s for v in late.absolute(late.spec()).views for w in v.schedule]
+    assert min(starts) == pytest.approx(0.62)  # the initiation is past: side follows runout
+
+
 # --- the snapshots' coarse-graining -------------------------------------------------------------
 def lattice(n: int, spacing: float) -> np.ndarray:
     g = (np.arange(n) + 0.5) * spacing
@@ -188,8 +250,9 @@ def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
     x0 = lattice(4, 0.01) + [0.3, 0.3, 0.0]  # 64 particles, 8 groups at the model's 0.02 m
     got: dict = {}
 
-    def stub(model, stats, old, flow, snaps, scene, frames_left):
-        got.update(snaps=snaps, frames_left=frames_left)
+    def stub(model, stats, old, flow, snaps, scene, plan):
+        from_s, frames = plan()
+        got.update(snaps=snaps, frames=frames, from_s=from_s, now_s=flow.now_s)
         new = shifted(old, 0.0, {}, snapshots=[])
         return Spec.from_dict({**new.to_dict(), "events": [
             {"name": "runout_end", "time_s": 0.3, "tolerance_s": 0.03}]}), {"stub": True}
@@ -245,4 +308,8 @@ def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
         np.testing.assert_allclose(s.positions[order], x_sent[np.lexsort(x_sent.T)], atol=1e-6)
         start = s.positions - s.displacement  # the initial lattice, whatever the order
         np.testing.assert_allclose(start[np.lexsort(start.T)], x0[np.lexsort(x0.T)], atol=1e-6)
-    assert got["frames_left"] <= 30
+    # planned from when it will be adopted, within what the budget of 30 has left, a
+    # reserve kept for the re-forecasts that may follow (3 at most)
+    assert got["from_s"] >= got["now_s"] + 0.005
+    left = follower.updates[-1].detail["frames_left"]
+    assert 0 < left <= 30 and got["frames"] == left - round(0.25 * left)

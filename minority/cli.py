@@ -96,8 +96,8 @@ def _serve_parser(sub) -> None:
     g = p.add_argument_group("several render ranks (MPI)")
     g.add_argument("--ranks", type=int, metavar="N",
                    help="render ranks (default: 1, or what the MPI launcher started). N > 1 "
-                        "re-runs this command under the venv's mpiexec -n N "
-                        "-disable-auto-cleanup. Sim rank r's chunks go to render rank r %% N, "
+                        "re-runs this command under the venv's mpiexec -n N. Sim rank r's "
+                        "chunks go to render rank r %% N, "
                         "which logs them to its own shard next to the log (FILE.render{k}.mcap"
                         "; replay, report and score read the shards with it); rank 0 serves "
                         "the spec, assembles the steps, writes the frames, publishes frames, "
@@ -116,18 +116,15 @@ def _serve_parser(sub) -> None:
 
 
 def _relaunch_serve(ranks: int, argv: list[str]) -> int:
-    """`python -m minority ARGV` under the venv's mpiexec -n RANKS (hydra, with
-    -disable-auto-cleanup: a killed rank does not take the others, rank 0 ends the run);
-    SIGINT and SIGTERM are passed on to it."""
+    """`python -m minority ARGV` under the venv's mpiexec -n RANKS; SIGINT and SIGTERM are
+    passed on to it."""
     from minority.sim.ranks import RELAUNCH_ENV, mpiexec_path
 
     mpiexec = mpiexec_path()
     if mpiexec is None:
         return fail("serve", f"--ranks needs mpiexec, none found next to {sys.executable} or "
                              f"on PATH: {NO_MPI}")
-    hydra = mpiexec.parent == Path(sys.executable).parent  # the mpich wheel's
-    cmd = [str(mpiexec), *(["-disable-auto-cleanup"] if hydra else []), "-n", str(ranks),
-           sys.executable, "-m", "minority", *argv]
+    cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "minority", *argv]
     proc = subprocess.Popen(cmd, env={**RELAUNCH_ENV, **__import__("os").environ})
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda s, _: proc.send_signal(s))

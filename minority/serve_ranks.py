@@ -18,7 +18,7 @@ from minority.cliargs import BAD_INPUT, FAILED, parent_made
 
 def serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     """Rank 0: the server; ranks k > 0: workers. Returns the exit status (rank 0 exits with
-    os._exit(1) after a rank died: MPI cannot finalize with it)."""
+    MPI_Abort after a rank died: MPI cannot finalize with it)."""
     import zenoh
 
     from minority.protocol.session import (
@@ -76,6 +76,8 @@ def _worker(args, spec, ctl, draw, session) -> int:
 
     ignore_stop_signals()
     worker = Worker(ctl, draw, session, spec.run, spec, args.max_sim_ranks, args.rank_timeout)
+    print(f"render rank {ctl.rank}: pid {os.getpid()}, chunks of sim ranks "
+          f"{ctl.rank}, {ctl.rank + ctl.size}, ...", file=sys.stderr, flush=True)
     ctl.Barrier()  # subscribed before rank 0 says it serves
     try:
         return worker.serve()
@@ -115,7 +117,8 @@ def _server(args, spec, ctl, draw, session) -> int:
     coordinator.on_failure = server.abort
     coordinator.start()
     run = server.current
-    print(f"serving run {spec.run!r} on {ctl.size} render ranks: {len(spec.views)} views, "
+    print(f"serving run {spec.run!r} on {ctl.size} render ranks (rank 0: pid {os.getpid()}): "
+          f"{len(spec.views)} views, "
           f"frames to {run.frames_dir}/" + (f", log {run.writer.path} (and its shards "
                                             f"{run.writer.path.stem}.render*.mcap)"
                                             if run.writer else ""),
@@ -131,7 +134,7 @@ def _server(args, spec, ctl, draw, session) -> int:
             live.close()
         session.close()
         sys.stdout.flush()
-        os._exit(FAILED)  # MPI cannot finalize with a dead rank; the render thread may wait on it
+        ctl.Abort(FAILED)  # ends every rank, a stuck one too (MPI cannot finalize without it)
     server.close()
     session.close()
     if live is not None:

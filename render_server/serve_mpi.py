@@ -22,19 +22,20 @@ added them, sim rank, cache position): the order in which the one-process cache 
 
 Faults: every rank sends a heartbeat every HEARTBEAT_S on a thread that never renders. Rank 0
 declares a rank dead after `rank_timeout_s` without one: it publishes an error event, ends
-the run (run_end, the log closed complete) and exits with status 1 without waiting for the
-collective its render thread may be stuck in. A rank k > 0 that hears nothing from rank 0
-for `rank_timeout_s` closes its shard and exits with status 1. Hydra (the mpich wheel's
-mpiexec) SIGKILLs every rank when one dies unless started with -disable-auto-cleanup, which
-`minority serve --ranks N` passes; under a plain `mpiexec -n N` a killed rank takes the others
-with it and the logs end at their last flushed chunk (at most 0.5 s lost; `minority log
-repair`).
+the run (run_end, the log closed complete) and ends the job without waiting for the
+collective its render thread may be stuck in, through MPI_Abort, which ends every rank (a
+stuck one too). A rank k > 0 that hears nothing from rank 0 for `rank_timeout_s` closes its
+shard and calls MPI_Abort. A rank killed with SIGKILL is another matter with MPICH (measured
+with the mpich wheel's hydra, with and without -disable-auto-cleanup): the library aborts the
+job at once, every rank is SIGKILLed within about a second, before any heartbeat is missed,
+and the logs end at their last complete MCAP chunk (the writers complete one at least every
+0.5 s; `minority log repair` makes indexed copies). Not -disable-auto-cleanup: with it MPICH
+still kills the job when a rank is killed, and MPI_Abort leaves a stuck rank running.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import os
 import queue
 import signal
 import sys
@@ -471,7 +472,7 @@ class Worker:
                       f"{self.rank_timeout_s:g} s: it died; this rank stops", file=sys.stderr,
                       flush=True)
                 self._close()
-                os._exit(1)  # a collective with the dead rank 0 would never return
+                self.ctl.Abort(1)  # ends every rank (rank 0 too, if it is stuck)
 
     def _chunk(self, item) -> None:
         try:
@@ -503,6 +504,7 @@ class Worker:
         try:
             self._writer = LogWriter(shard, metadata={"run": self.run, "side": "server",
                                                       "render_rank": str(self.rank)})
+            self._writer.flush()  # the header on disk: a killed rank leaves a readable shard
         except OSError as exc:
             self._up(("report", f"render rank {self.rank}: cannot open its log {shard}: {exc}"))
             return

@@ -51,11 +51,24 @@ class ContextTracker:
         """Forget what the server holds: the next split resends every outside particle."""
         self._reset = True
 
-    def split(self, pid: np.ndarray, x: np.ndarray, outside: np.ndarray) -> ContextSplit:
+    def cached(self, pid: np.ndarray) -> np.ndarray:
+        """[n] bool: which of the ids pid [n] the server holds from this rank (none while a
+        reset is pending)."""
+        if self._reset or not self._cached:
+            return np.zeros(len(pid), dtype=bool)
+        out = np.zeros(len(pid), dtype=bool)
+        known = pid < len(self._sent)
+        out[known] = ~np.isnan(self._sent[pid[known], 0])
+        return out
+
+    def split(self, pid: np.ndarray, x: np.ndarray, outside: np.ndarray,
+              resend: bool = False) -> ContextSplit:
         """pid [n] int ids and x [n, 3] m of the rank's particles; outside [n] bool: the
         particles the server must draw from its cache at this step (outside every region of
-        the request, and within its decimation stride). Returns the context rows, the
-        evictions and the reset flag, and records them as sent."""
+        the request, and within its decimation stride). resend: every outside row goes as
+        a context row, moved or not (a snapshot: every particle in the chunk, the cached
+        ones kept cached rather than evicted). Returns the context rows, the evictions and
+        the reset flag, and records them as sent."""
         reset, self._reset = self._reset, False
         if reset:
             self._sent[:] = np.nan
@@ -82,7 +95,9 @@ class ContextTracker:
         now = x[rows].astype(np.float32)  # as the wire carries them: float64 rounding is no move
         new = np.isnan(last[:, 0])  # not cached: sent whatever their position
         moved = new.copy()
-        if self.tolerance_m > 0.0:
+        if resend:
+            moved[:] = True
+        elif self.tolerance_m > 0.0:
             step = (now - last).astype(np.float64)
             moved |= np.einsum("ij,ij->i", step, step) > self.tolerance_m ** 2
         else:

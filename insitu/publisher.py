@@ -456,11 +456,14 @@ class RankPublisher(Sender):
             seen = scene_visible(p, request, radius)
             if seen is not None:
                 keep &= seen
-            if inside is None:  # no regions: every particle is fresh, none cached
+            if inside is None and request.snapshot:  # every particle, in the chunk: those
+                outside = keep & self._cached(p)  # the server holds go as context rows, kept
+                fresh = keep & ~outside
+            elif inside is None:  # no regions: every particle is fresh, none cached
                 fresh, outside = keep, np.zeros(p.n, dtype=bool)
             else:
                 fresh, outside = keep & inside, keep & ~inside
-            context = self._split_context(p, outside)
+            context = self._split_context(p, outside, resend=request.snapshot)
             rows = np.concatenate([np.flatnonzero(fresh), context.rows])
             if len(rows) == p.n and not len(context.rows):  # every row, in order: no copy
                 rows = None
@@ -483,14 +486,22 @@ class RankPublisher(Sender):
               f"does not provide (given: {', '.join(['id', *particles.fields]) })",
               file=self.log)
 
-    def _split_context(self, p: Particles, outside: np.ndarray) -> ContextSplit:
-        """The context rows and evictions of this chunk. outside [n] bool: the particles
-        outside the regions the server must draw (within the stride, and that may show);
-        the cached ones not among them are evicted."""
+    def _cached(self, p: Particles) -> np.ndarray:
+        """[n] bool: the particles the server holds from this rank (none after a reset)."""
         if self._context_stale:
             self._context_stale = False
             self._context.reset()
-        split = self._context.split(p.ids, p.positions, outside)
+        return self._context.cached(p.ids)
+
+    def _split_context(self, p: Particles, outside: np.ndarray,
+                       resend: bool = False) -> ContextSplit:
+        """The context rows and evictions of this chunk. outside [n] bool: the particles
+        outside the regions the server must draw (within the stride, and that may show);
+        the cached ones not among them are evicted. resend: every outside row is sent."""
+        if self._context_stale:
+            self._context_stale = False
+            self._context.reset()
+        split = self._context.split(p.ids, p.positions, outside, resend)
         with self._lock:
             self.stats.context_rows += len(split.rows)
             self.stats.context_evicted += len(split.evict)

@@ -313,3 +313,42 @@ def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
     assert got["from_s"] >= got["now_s"] + 0.005
     left = follower.updates[-1].detail["frames_left"]
     assert 0 < left <= 30 and got["frames"] == left - round(0.25 * left)
+
+
+def test_a_snapshot_keeps_the_servers_cache_of_the_outside(tmp_path):
+    """At a snapshot step every particle travels, the ones outside the regions as context
+    rows (the server's cache refreshed, not evicted): the next step resends nothing of the
+    outside that did not move."""
+    import json
+
+    from minority.protocol.log import read_log
+    from minority.protocol.messages import Chunk
+
+    from minority.demo import free_port
+
+    d = spec(snapshots=[0.0025]).to_dict()
+    d["views"][0]["schedule"] = [{"every_steps": 1, "regions": ["a"]}]
+    d["regions"] = [{"name": "a", "lo_m": [0, 0, 0], "hi_m": [0.5, 1, 1]}]
+    (tmp_path / "spec.json").write_text(json.dumps(d))
+    x0 = np.r_[lattice(2, 0.1), lattice(2, 0.1) + [0.6, 0.0, 0.0]]  # 8 inside, 8 outside
+    viz = connect(RUN, connect=(f"tcp/127.0.0.1:{free_port()}",), spec=tmp_path / "spec.json",
+                  record=tmp_path / "rec.mcap", log=io.StringIO(), report=False)
+    for step in range(6):
+        x = x0 + np.array([[0.01 * step, 0, 0]] * 8 + [[0, 0, 0]] * 8)  # the outside rests
+        if viz.due(step, (step + 1) * DT):
+            viz.publish(step, (step + 1) * DT, x, fields={"displacement": x - x0},
+                        spacing_m=0.05)
+        viz.wait_sent(10.0)  # every step sent: none refused by a full outbox
+    viz.close()
+    chunks = {c.step: c for c in (r.decode() for r in read_log(tmp_path / "rec.mcap"))
+              if isinstance(c, Chunk)}
+    outside = np.arange(8, 16)
+    assert sorted(chunks[0].context_ids) == outside.tolist()  # sent once
+    snap = chunks[2]  # t 0.003: the snapshot at 0.0025
+    assert snap.count == 16 and sorted(snap.context_ids) == outside.tolist()
+    assert not len(snap.evict_ids) and not snap.context_reset
+    np.testing.assert_allclose(np.sort(snap.positions[:, 0]),
+                               np.sort(np.r_[x0[:8, 0] + 0.02, x0[8:, 0]]), atol=1e-6)
+    for k in (1, 3, 4):  # the outside rests: nothing of it resent, nothing evicted
+        assert chunks[k].count == 8 and not len(chunks[k].context_ids)
+        assert not len(chunks[k].evict_ids)

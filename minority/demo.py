@@ -3,7 +3,9 @@
 1. oracle: roll the shipped GNS checkpoint out on the demo column (seconds; its first
    frames from the MPM at the model's spacing), derive the
    spec (views, windows, cadence, regions, colormap range), export cameras and a preview;
-2. the render server in its own process, listening on loopback;
+2. the render server in its own process, listening on loopback, and the closed-loop oracle
+   (`minority oracle follow`) beside it: it reads the run's Stats and re-forecasts when the
+   run leaves the prediction, the server and ranks following its updates;
 3. the MPM column collapse on 2 ranks (MPI), publishing only what the spec asks for, plus
    in situ statistics;
 4. frames and the MCAP log from the server; the timing report and the oracle's score;
@@ -43,6 +45,7 @@ class DemoOptions:
     checkpoint: Path = CHECKPOINT
     timeout_s: float = 600.0  # the sim's wall-clock limit
     http: str | None = None  # the server's live view, [HOST:]PORT (port 0: a free one)
+    follow: bool = True  # run the closed-loop oracle (minority oracle follow) beside the server
 
     def __post_init__(self) -> None:
         from minority.gns.oracle import OracleOptions
@@ -112,8 +115,37 @@ def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
     return spec_path, rollout_h5
 
 
+def start_follower(o: DemoOptions, scene: Path, endpoint: str, env: dict, log) -> subprocess.Popen:
+    """`minority oracle follow` on the run, its update lines to `log`; returns once it
+    follows (it has the run's spec, so it reads the run from its first Stats)."""
+    follower = subprocess.Popen(
+        [sys.executable, "-m", "minority", "oracle", "follow", RUN, "--scene", str(scene),
+         "--checkpoint", str(o.checkpoint), "--ranks", str(o.ranks), "--connect", endpoint,
+         "--threads", str(o.threads), "--timeout", str(o.timeout_s)],
+        stdout=log, stderr=subprocess.STDOUT, env=env)
+    deadline = time.monotonic() + 120
+    while "following run" not in Path(log.name).read_text():
+        if follower.poll() is not None or time.monotonic() > deadline:
+            stop(follower)
+            raise RuntimeError(f"the closed-loop oracle did not start; see {log.name}")
+        time.sleep(0.1)
+    return follower
+
+
+def stop(proc: subprocess.Popen | None, wait_s: float = 60) -> None:
+    """SIGINT a process still running, then kill it if it does not end within wait_s."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=wait_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # never leave it running behind the demo
+        proc.wait()
+
+
 def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Path:
-    """Server process + sim ranks; returns the server's MCAP log."""
+    """Server process (+ the follower) + sim ranks; returns the server's MCAP log."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     log_path = o.out / "run.mcap"
@@ -136,7 +168,12 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
         url_host = f"[{host}]" if ":" in host else host
         say(f"live view: http://{url_host}:{http_port}/ (open it now: the server stops when "
             "the run is rendered)")
+    follower, follow_log = None, open(o.out / "follow.log", "w")  # noqa: SIM115 - closed below
     try:
+        if o.follow:
+            follower = start_follower(o, scene, endpoint, env, follow_log)
+            say(f"closed-loop oracle: pid {follower.pid}, following run {RUN!r} (updates in "
+                f"{o.out / 'follow.log'})")
         sim = subprocess.run(
             [sys.executable, "-m", "minority", "sim", str(scene), "--ranks", str(o.ranks),
              "--run", RUN, "--spec", str(spec_path), "--connect", endpoint, "--wait", "30",
@@ -147,15 +184,13 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
             raise RuntimeError(f"the simulation failed (exit {sim.returncode})")
         say("simulation done; waiting for the server to render the last steps")
         server.wait(timeout=120)
+        if follower is not None:  # it ends with the run's end, which the server announced
+            follower.wait(timeout=60)
     finally:
-        if server.poll() is None:
-            server.send_signal(signal.SIGINT)
-            try:
-                server.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                server.kill()  # never leave it running behind the demo
-                server.wait()
+        stop(server)
+        stop(follower)
         server_log.close()
+        follow_log.close()
     if server.returncode != 0:
         raise RuntimeError(f"the render server failed (exit {server.returncode}); see "
                            f"{o.out / 'server.log'}")
@@ -164,7 +199,7 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
 
 def main(o: DemoOptions) -> int:
     from minority.movie import frame_folders, write_movies
-    from minority.protocol.spec import Spec
+    from minority.protocol.runlog import log_specs
     from minority.report import report
     from minority.score import load_run, markdown, score
 
@@ -175,7 +210,12 @@ def main(o: DemoOptions) -> int:
     spec_path, rollout_h5 = run_oracle(o, scene, say)
     log_path = run_pipeline(o, scene, spec_path, say)
     (o.out / "report.md").write_text(report(log_path, o.out))
-    result = score(Spec.load(spec_path), load_run(log_path))
+    specs = log_specs(log_path)  # the last in force: the follower's, if it updated the spec
+    result = score(specs[-1], load_run(log_path))
+    updates = [s.provenance for s in specs if "update" in s.provenance]
+    if o.follow:
+        say(f"closed-loop oracle: {len(updates)} spec updates "
+            f"({sum(u.get('kind') == 'forecast' for u in updates)} re-forecasts)")
     (o.out / "score.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
     (o.out / "score.md").write_text(markdown(result))
     write_movies(frame_folders(o.out / "frames" / RUN), o.out / "frames" / RUN,
@@ -191,7 +231,9 @@ WHERE = """Files (in {out}/):
   oracle/rollout.h5     the GNS prediction; oracle/vtk/rollout.pvd opens it in ParaView
   oracle/cameras/*.pvcc the spec's cameras for ParaView (View > Camera > Load)
   oracle/preview.png    the spec's views rendered on the prediction
-  spec.json             the oracle spec the server rendered (edit it and replay the log)
+  spec.json             the oracle spec the run started with (edit it and replay the log)
+  follow.log            the closed-loop oracle's spec updates, a JSON line each: reason,
+                        kind (shift, forecast), the run's time, wall cost (none: --no-follow)
   frames/{run}/VIEW/*.png  the frames the render server ray-traced during the run
   frames/{run}/VIEW.mp4    those frames as a movie (H.264, one per frame at 10 fps)
   frames/{run}/VIEW.webp   a small looping animation of them (320 px wide, under 1 MB)

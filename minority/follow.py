@@ -112,7 +112,7 @@ class LiveFlow:
         w = np.array(self.wall_s)
         k = max(0, min(int(np.searchsorted(w, w[-1] - RATE_WINDOW_S)), len(w) - 2))
         span = w[-1] - w[k]
-        return (self.time_s[-1] - self.time_s[k]) / span if span > 0 else None
+        return float((self.time_s[-1] - self.time_s[k]) / span) if span > 0 else None
 
     @property
     def now_s(self) -> float:
@@ -442,7 +442,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0, from_s)
     new = seg.spec()
     info = {"particles": int(history.shape[1]), "rollout_frames": int(len(traj) - c1),
-            "calibration": ratio, "from_s": from_s, "frames_planned": options.frames,
+            "calibration": float(ratio), "from_s": float(from_s),
+            "frames_planned": int(options.frames),
             "plan_s": time.perf_counter() - t_plan, "forecast_s": time.perf_counter() - t_start}
     return seg.absolute(new, **{"forecast": info}), info
 
@@ -644,7 +645,7 @@ class Follower:
         of the budget, less RESERVE_SHARE of them while more re-forecasts may follow."""
         self._catch_up()
         rate = self.flow.rate() or 0.0
-        from_s = self.flow.now_s + rate * self._plan_wall + self.o.interval_s
+        from_s = float(self.flow.now_s + rate * self._plan_wall + self.o.interval_s)
         left = self.budget_total - self.frames
         more = sum(u.kind == "forecast" for u in self.updates) + 1 < self.o.max_updates
         self._planned = (from_s, rate, left)

@@ -84,3 +84,22 @@ def test_small_demo_writes_a_movie_and_an_animation_per_view(small_demo):
         assert webp.stat().st_size < 1_000_000
         with Image.open(webp) as im:
             assert im.is_animated and im.size == (160, 120)  # under 320 px: not scaled
+
+
+def test_small_demo_runs_the_closed_loop_oracle_beside_the_server(small_demo):
+    """The follower started before the sim and ended with the run; each spec update it put
+    is a JSON line of its log and a spec of the run's log with the same provenance."""
+    from minority.protocol.runlog import log_specs
+
+    out, printed = small_demo
+    assert "follow.log" in printed and "closed-loop oracle: pid" in printed
+    lines = (out / "follow.log").read_text().splitlines()
+    assert lines[0] == f"oracle follow: following run {RUN!r}"
+    assert lines[-1].startswith("oracle follow: ") and "updates" in lines[-1]
+    updates = [json.loads(line) for line in lines if line.startswith("{")]
+    assert all(u["kind"] in ("shift", "forecast") and u["reason"] for u in updates)
+    logged = [s.provenance for s in log_specs(out / "run.mcap") if "update" in s.provenance]
+    put = [(u["update"], u["kind"]) for u in updates]
+    # the server logs each update it took (one put as the run ended may come too late)
+    assert [(p["update"], p["kind"]) for p in logged] == put[:len(logged)]
+    assert len(logged) >= len(put) - 1

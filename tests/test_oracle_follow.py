@@ -187,6 +187,7 @@ def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates()
     f.frames = 10
     from_s, frames = f.plan()
     assert from_s == pytest.approx(0.1 + 0.1 * 1.0 + 0.005)  # + the planning's wall time
+    assert type(from_s) is float and type(frames) is int  # JSON in the spec's provenance
     assert frames == 20 - 5  # 20 left, a quarter kept
     f.updates = [type("U", (), {"kind": "forecast"})()] * 2  # the last re-forecast: all
     assert f.plan()[1] == 20
@@ -352,3 +353,38 @@ def test_a_snapshot_keeps_the_servers_cache_of_the_outside(tmp_path):
     for k in (1, 3, 4):  # the outside rests: nothing of it resent, nothing evicted
         assert chunks[k].count == 8 and not len(chunks[k].context_ids)
         assert not len(chunks[k].evict_ids)
+
+
+def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption():
+    """The real re-forecast on a small column (the shipped checkpoint, 128 particles at its
+    spacing): rolled to rest, planned from plan()'s time within its frames, a spec that
+    encodes (its provenance plain JSON)."""
+    from minority.gns.train import load_checkpoint
+
+    from minority.demo import CHECKPOINT
+    from minority.follow import reforecast
+
+    model, ckpt = load_checkpoint(CHECKPOINT)
+    stats = ckpt["stats"]
+    h, dt = float(stats["particle_spacing_m"]), float(stats["frame_interval_s"])
+    g = (np.arange(4) + 0.5) * h
+    x0 = np.stack(np.meshgrid(g, g, (np.arange(8) + 0.5) * h, indexing="ij"),
+                  -1).reshape(-1, 3)
+    t0 = 0.05
+    snaps = [Snapshot(t0 + k * dt, x0 + [0.02 * k * dt, 0, -0.01 * k * dt],
+                      np.tile([0.02 * k * dt, 0, -0.01 * k * dt], (len(x0), 1)))
+             for k in range(6)]
+    flow = flow_of(lambda t: 0.02, t0 + 5 * dt, ranks=1)
+    asked = []
+
+    def plan():
+        asked.append(flow.now_s)
+        return t0 + 0.04, 12
+
+    new, info = reforecast(model, stats, spec(), flow, snaps,
+                           Scene(np.array([[0, 0.4], [0, 0.04], [0, 0.2]]), 30.0, 0.4), plan)
+    assert asked and info["from_s"] == pytest.approx(t0 + 0.04) and info["particles"] == 128
+    assert info["frames_planned"] in (6, 12)  # 6: the flow at rest by then
+    assert Spec.from_dict(new.to_dict()) == new and new.encode()
+    assert min(w.t_start_s for v in new.views for w in v.schedule) >= t0 + 0.04 - 1e-9
+    assert new.provenance["forecast"]["from_s"] == pytest.approx(t0 + 0.04)

@@ -49,9 +49,9 @@ REGIONS_TARGET = 0.99  # share of the moving particles the regions must hold
 PEAK_FALL = 0.9  # the kinetic-energy peak is past once it falls below this share of its max
 REST_FRACTION = 0.01  # gns.events: rest is the kinetic energy below 1 % of its peak
 RESERVE_SHARE = 0.25  # of the frames left, kept for later updates while re-forecasts remain
-REST_FRAMES = 6  # frames of a forecast that sees the flow at rest by its adoption (the least)
 PLAN_WALL_S = 1.0  # first guess of the planning's wall time after the rollout, s
 RATE_WINDOW_S = 5.0  # the run's progress rate is measured over this much wall time, s
+WIDEN = 0.25  # a regions departure grows the regions in use by this share of their size
 CALIBRATION = (0.5, 2.0)  # bounds of the run / forecast speed ratio at the join
 QUEUE_MESSAGES = 65536  # messages queued for the follower's thread at most
 
@@ -252,6 +252,35 @@ def shifted(spec: Spec, shift_s: float, seen: dict[str, float], now_s: float | N
     return Spec.from_dict(d)
 
 
+def widened(spec: Spec, now_s: float, bounds_m: np.ndarray, share: float = WIDEN) -> Spec:
+    """The spec with the regions of the windows open at now_s (s) or later grown by `share`
+    of their size on every side, twice that ahead along +x (where the flow goes), within
+    bounds_m [3, 2] (m): at once, until a re-forecast places them."""
+    d = spec.to_dict()
+    names = {n for v in d["views"] for w in v["schedule"]
+             if w["t_end_s"] is None or w["t_end_s"] >= now_s for n in w.get("regions", ())}
+    for r in d["regions"]:
+        if r["name"] in names:
+            lo, hi = np.array(r["lo_m"]), np.array(r["hi_m"])
+            pad = share * (hi - lo)
+            r["lo_m"] = np.maximum(lo - pad, bounds_m[:, 0]).tolist()
+            r["hi_m"] = np.minimum(hi + pad * [2.0, 1.0, 1.0], bounds_m[:, 1]).tolist()
+    return Spec.from_dict(d)
+
+
+def without_future(spec: Spec, from_s: float) -> dict:
+    """The spec's JSON with no window after from_s (s): windows that start later dropped,
+    those open then ended there (a view left with none keeps an instant at t = 0, past)."""
+    d = spec.to_dict()
+    for v in d["views"]:
+        kept = [w for w in v["schedule"] if w["t_start_s"] < from_s]
+        for w in kept:
+            w["t_end_s"] = from_s if w["t_end_s"] is None else min(w["t_end_s"], from_s)
+        v["schedule"] = kept or [{**v["schedule"][0], "t_start_s": 0.0, "t_end_s": 0.0}]
+    d["snapshots"] = []
+    return d
+
+
 # --- the re-forecast ----------------------------------------------------------------------
 @dataclass
 class Snapshot:
@@ -411,8 +440,9 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     """The spec of the rest of the run from the snapshots ([C + 1] one model frame apart):
     coarse-grain, roll the GNS to rest, then ask plan() -> (from_s, frames): when the spec
     will be adopted (s of the run's time) and how many frames it may plan; join the events
-    and plan (gns.oracle) windows from from_s on within those frames (REST_FRAMES when the
-    joined forecast has the flow at rest by then). stats: the checkpoint's
+    and plan (gns.oracle) windows from from_s on within those frames (none when the joined
+    forecast has the flow at rest by then: the spec in force ended at from_s, with the
+    forecast's events). stats: the checkpoint's
     (particle_spacing_m, frame_interval_s). Returns the spec (snapshots cleared) and what
     its provenance records; TooLate when from_s is past the run's last model frame."""
     t_start = time.perf_counter()
@@ -430,8 +460,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
     at, ratio = joined_events(flow, t0, dt, traj, c1)
-    if at["runout_end"] <= from_s:  # at rest by then: the least spec, the rest kept
-        frames_left = min(frames_left, REST_FRAMES)
+    rest = at["runout_end"] <= from_s  # at rest by then: events only, no frame planned
     v0 = spec.to_dict()["views"][0]
     options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(spec.views), 6),
                             width=v0["width"],
@@ -440,12 +469,16 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
                             else OracleOptions.colormap,
                             occlusion_cull=all(v.occlusion_cull for v in spec.views))
     seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0, from_s)
-    new = seg.spec()
+    new = seg.absolute(seg.spec())
+    if rest:  # the spec in force, its windows ended at from_s, with the forecast's events
+        new = Spec.from_dict({**without_future(spec, from_s), "events": new.to_dict()["events"],
+                              "provenance": new.provenance})
     info = {"particles": int(history.shape[1]), "rollout_frames": int(len(traj) - c1),
             "calibration": float(ratio), "from_s": float(from_s),
-            "frames_planned": int(options.frames),
+            "frames_planned": 0 if rest else int(options.frames),
             "plan_s": time.perf_counter() - t_plan, "forecast_s": time.perf_counter() - t_start}
-    return seg.absolute(new, **{"forecast": info}), info
+    return Spec.from_dict({**new.to_dict(), "provenance": {**new.provenance,
+                                                           "forecast": info}}), info
 
 
 # --- the follower ----------------------------------------------------------------------------
@@ -613,6 +646,8 @@ class Follower:
             self.spec.provenance.get("predicted", {}).get("peak_speed_m_s", 0.0)))
         spec = shifted(self.spec, 0.0 if retry else d.shift_s, seen, now_s=self.flow.now_s,
                        end_s=self.scene.duration_s, snapshots=list(self._wanted))
+        if d.kind == "regions" and not retry:  # the movers are outside: widen at once
+            spec = widened(spec, self.flow.now_s, self.scene.bounds_m)
         self._put(spec, Update(len(self.updates) + 1, "shift", d.reason, self.flow.now_s, 0.0,
                                {"shift_s": 0.0 if retry else d.shift_s, "departure": d.kind,
                                 "event": d.event, "snapshots_s": list(self._wanted)}))

@@ -384,7 +384,34 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption():
     new, info = reforecast(model, stats, spec(), flow, snaps,
                            Scene(np.array([[0, 0.4], [0, 0.04], [0, 0.2]]), 30.0, 0.4), plan)
     assert asked and info["from_s"] == pytest.approx(t0 + 0.04) and info["particles"] == 128
-    assert info["frames_planned"] in (6, 12)  # 6: the flow at rest by then
     assert Spec.from_dict(new.to_dict()) == new and new.encode()
-    assert min(w.t_start_s for v in new.views for w in v.schedule) >= t0 + 0.04 - 1e-9
+    windows = [w for v in new.views for w in v.schedule]
+    if info["frames_planned"]:  # planned from its adoption on
+        assert 6 <= info["frames_planned"] <= 12
+        assert min(w.t_start_s for w in windows) >= t0 + 0.04 - 1e-9
+    else:  # at rest by then: nothing planned after it
+        assert max(w.t_end_s for w in windows) <= t0 + 0.04 + 1e-9
     assert new.provenance["forecast"]["from_s"] == pytest.approx(t0 + 0.04)
+    assert {e.name for e in new.events} == {"failure_onset", "runout_start", "peak_motion",
+                                            "runout_end"}
+
+
+def test_a_regions_departure_widens_the_regions_in_use_within_the_domain():
+    from minority.follow import widened
+
+    s = Spec.from_dict({**spec().to_dict(), "regions": [
+        {"name": "a", "lo_m": [0.2, 0.2, 0.0], "hi_m": [0.4, 0.6, 0.2]}]})
+    w = widened(s, 0.3, np.array([[0.0, 1.0], [0.0, 0.65], [0.0, 1.0]]))
+    r = w.region("a")
+    np.testing.assert_allclose(r.lo_m, [0.15, 0.1, 0.0])  # the floor is the domain's
+    np.testing.assert_allclose(r.hi_m, [0.5, 0.65, 0.25])  # ahead along x: twice as far
+    assert widened(s, 0.5, np.array([[0, 1.0]] * 3)).region("a") == s.region("a")  # past
+
+
+def test_without_future_ends_every_window_at_the_adoption():
+    from minority.follow import without_future
+
+    d = without_future(spec(snapshots=[0.3]), 0.25)
+    assert d["views"][0]["schedule"][0]["t_end_s"] == 0.25 and not d.get("snapshots")
+    gone = without_future(spec(), 0.1)["views"][0]["schedule"]  # the window starts later
+    assert [(w["t_start_s"], w["t_end_s"]) for w in gone] == [(0.0, 0.0)]

@@ -1,18 +1,23 @@
 """Sort-last depth compositing of per-rank images into one frame on the root rank.
 
-Direct send (as IceT's): rank r owns a band of image rows (rows h*r//N to h*(r+1)//N); every
-rank sends each owner the rows of its band (colour, depth and key, one Alltoallv each; the
-bands are contiguous rows, so no packing), each owner keeps at every pixel the layer of the
-nearest depth, on equal depth the lowest key, and the root gathers the bands. The winning
-(depth, key) is what a one-process render chooses among all the particles (render_server.cast
-breaks ties by the same keys), so the composited frame is pixel-identical to it. Each rank
-sends and receives (N - 1)/N of its image, 19 bytes a pixel (rgb, float64 depth, int64 key).
+Sparse direct send: rank r owns a band of image rows (rows h*r//N to h*(r+1)//N); every rank
+sends each owner only the pixels of that band its particles hit, as 24-byte records (pixel
+index and colour in one word, depth, key), all owners in one Alltoallv. Each owner starts
+from its own layer and keeps at every pixel the record of the nearest depth, on equal depth
+the lowest key; the root gathers the bands (colour and hit flag, 4 bytes a pixel). The
+winning (depth, key) is what a one-process render chooses among all the particles
+(render_server.cast breaks ties by the same keys), so the composited frame is
+pixel-identical to it. A rank sends 24 bytes per hit pixel outside its own band: with
+coverage c of the image, 24 c (N-1)/N bytes a pixel instead of the 19 (N-1)/N of dense
+direct send, and a brick covers less of the image the more ranks there are.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+
+RECORD_WORDS = 3  # uint64 words of a pixel record: index << 24 | rgb, depth bits, key
 
 
 def bands(height: int, ranks: int) -> np.ndarray:
@@ -24,7 +29,7 @@ def bands(height: int, ranks: int) -> np.ndarray:
 def _merge(rgb, depth, key, out_rgb, out_hit):
     """out_rgb[q], out_hit[q]: the layer of rgb [s, m, 3] / depth [s, m] / key [s, m] with
     the nearest depth at pixel q (lowest key on ties; source 0's background when no layer
-    is hit), and whether any layer is hit."""
+    is hit), and whether any layer is hit. The dense rule the sparse records follow."""
     for q in prange(rgb.shape[1]):
         best = 0
         for s in range(1, rgb.shape[0]):
@@ -35,10 +40,75 @@ def _merge(rgb, depth, key, out_rgb, out_hit):
         out_hit[q] = depth[best, q] < np.inf
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _count_hits(depth, starts, counts):
+    """counts[b]: pixels hit (depth < inf) in band b, pixels starts[b] .. starts[b + 1]."""
+    for b in prange(counts.shape[0]):
+        c = 0
+        for q in range(starts[b], starts[b + 1]):
+            if depth[q] < np.inf:
+                c += 1
+        counts[b] = c
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _pack(rgb, depth, key, starts, offsets, skip, out):
+    """The records [k, 3] uint64 of every hit pixel of every band but `skip`, band b's at
+    offsets[b]: (index in the band << 24 | r << 16 | g << 8 | b, depth bits, key)."""
+    bits = depth.view(np.uint64)
+    for b in prange(starts.shape[0] - 1):
+        if b == skip:
+            continue
+        r = offsets[b]
+        for q in range(starts[b], starts[b + 1]):
+            if depth[q] < np.inf:
+                colour = (np.uint64(rgb[q, 0]) << np.uint64(16)) | (np.uint64(rgb[q, 1]) << np.uint64(8)) \
+                    | np.uint64(rgb[q, 2])
+                out[r, 0] = (np.uint64(q - starts[b]) << np.uint64(24)) | colour
+                out[r, 1] = bits[q]
+                out[r, 2] = np.uint64(key[q])
+                r += 1
+
+
+@njit(cache=True, nogil=True)
+def _merge_records(rgb, depth, key, start, records, band_rgb, band_hit):
+    """Merge records [k, 3] into this rank's band (band_rgb [m, 3] uint8, band_hit [m] bool),
+    which starts as this rank's own layer (rgb [h * w, 3], depth and key [h * w] from pixel
+    `start`): a record replaces the pixel if its depth is nearer, or equal with a lower key."""
+    m = band_rgb.shape[0]
+    best_depth = depth[start:start + m].copy()
+    best_key = key[start:start + m].copy()
+    band_rgb[:] = rgb[start:start + m]
+    for r in range(records.shape[0]):
+        q = np.int64(records[r, 0] >> np.uint64(24))
+        d = records[r, 1:2].view(np.float64)[0]
+        k = np.int64(records[r, 2])
+        if d < best_depth[q] or (d == best_depth[q] and k < best_key[q]):
+            best_depth[q], best_key[q] = d, k
+            colour = records[r, 0]
+            band_rgb[q, 0] = np.uint8((colour >> np.uint64(16)) & np.uint64(255))
+            band_rgb[q, 1] = np.uint8((colour >> np.uint64(8)) & np.uint64(255))
+            band_rgb[q, 2] = np.uint8(colour & np.uint64(255))
+    for q in range(m):
+        band_hit[q] = best_depth[q] < np.inf
+
+
 def _row_type(row_bytes: int):
     from mpi4py import MPI
 
     return MPI.BYTE.Create_contiguous(row_bytes).Commit()
+
+
+def _exchange(comm, send, send_counts, recv_counts, row_bytes: int, recv):
+    """Alltoallv of rows of row_bytes (send and recv grouped by rank, counts in rows)."""
+    row = _row_type(row_bytes)
+    try:
+        comm.Alltoallv([send.view(np.uint8).reshape(-1),
+                        (send_counts, np.cumsum(send_counts) - send_counts), row],
+                       [recv.view(np.uint8).reshape(-1),
+                        (recv_counts, np.cumsum(recv_counts) - recv_counts), row])
+    finally:
+        row.Free()
 
 
 def composite(comm, rgb: np.ndarray, depth: np.ndarray, key: np.ndarray, root: int = 0
@@ -47,41 +117,41 @@ def composite(comm, rgb: np.ndarray, depth: np.ndarray, key: np.ndarray, root: i
     (inf where nothing is hit), key [h * w] int64 of each pixel's particle. Returns on `root`
     the frame [h, w, 3] uint8 and hit [h * w] bool (a particle covers the pixel); None on
     the other ranks."""
+    from mpi4py import MPI
+
     h, w = rgb.shape[:2]
     if depth.shape != (h * w,) or key.shape != (h * w,):
         raise ValueError(f"depth and key must be [{h * w}], got {depth.shape} and {key.shape}")
     if comm is None or comm.size == 1:
         return np.ascontiguousarray(rgb), depth < np.inf
-    n = comm.size
+    n, me = comm.size, comm.rank
     rows = bands(h, n)
-    mine = int(rows[comm.rank + 1] - rows[comm.rank])
-    send_counts = np.diff(rows)
-    send_displs = rows[:-1]
-    recv_counts = np.full(n, mine, np.int64)
-    recv_displs = np.arange(n, dtype=np.int64) * mine
-    layers = {"rgb": np.empty((n, mine * w, 3), np.uint8),
-              "depth": np.empty((n, mine * w)), "key": np.empty((n, mine * w), np.int64)}
-    for name, data in (("rgb", rgb), ("depth", depth), ("key", key)):
-        data = np.ascontiguousarray(data)
-        row = _row_type(w * data.itemsize * (3 if name == "rgb" else 1))
-        try:
-            comm.Alltoallv([data.view(np.uint8).reshape(-1), (send_counts, send_displs), row],
-                           [layers[name].view(np.uint8).reshape(-1), (recv_counts, recv_displs),
-                            row])
-        finally:
-            row.Free()
-    band_rgb = np.empty((mine * w, 3), np.uint8)
-    band_hit = np.empty(mine * w, np.bool_)
-    _merge(layers["rgb"], layers["depth"], layers["key"], band_rgb, band_hit)
+    starts = rows * w  # first pixel of each band [n + 1]
+    flat = np.ascontiguousarray(rgb).reshape(h * w, 3)
+    depth, key = np.ascontiguousarray(depth), np.ascontiguousarray(key)
+    send_counts = np.empty(n, np.int64)
+    _count_hits(depth, starts, send_counts)
+    send_counts[me] = 0  # this rank's own band stays in place
+    recv_counts = np.empty(n, np.int64)
+    comm.Alltoall([send_counts, MPI.INT64_T], [recv_counts, MPI.INT64_T])
+    send = np.empty((int(send_counts.sum()), RECORD_WORDS), np.uint64)
+    _pack(flat, depth, key, starts, np.cumsum(send_counts) - send_counts, me, send)
+    recv = np.empty((int(recv_counts.sum()), RECORD_WORDS), np.uint64)
+    _exchange(comm, send, send_counts, recv_counts, RECORD_WORDS * 8, recv)
+    del send
+    mine = int(rows[me + 1] - rows[me])
+    band_rgb, band_hit = np.empty((mine * w, 3), np.uint8), np.empty(mine * w, np.bool_)
+    _merge_records(flat, depth, key, int(starts[me]), recv, band_rgb, band_hit)
+    del recv
     out = hit = None
-    if comm.rank == root:
+    if me == root:
         out, hit = np.empty((h, w, 3), np.uint8), np.empty(h * w, np.bool_)
     for band, full, bytes_per_px in ((band_rgb, out, 3), (band_hit, hit, 1)):
         row = _row_type(w * bytes_per_px)
         try:
-            recv = None if full is None else [full.view(np.uint8).reshape(-1),
-                                              (send_counts, send_displs), row]
-            comm.Gatherv([band.view(np.uint8).reshape(-1), mine, row], recv, root=root)
+            recv_spec = None if full is None else [full.view(np.uint8).reshape(-1),
+                                                   (np.diff(rows), rows[:-1]), row]
+            comm.Gatherv([band.view(np.uint8).reshape(-1), mine, row], recv_spec, root=root)
         finally:
             row.Free()
     return None if out is None else (out, hit)

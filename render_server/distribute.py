@@ -1,13 +1,22 @@
 """Repartition a step's particles across MPI render ranks: one count-balanced k-d brick each.
 
 Every rank holds some of the step's particles (as they arrived). The ranks agree on a k-d
-tree with one leaf per rank, chosen on a sample gathered from all of them (a global stride,
-so each rank contributes in proportion to its count; at most SAMPLE particles), then move
-every particle to the rank of its leaf with one Alltoallv per array. The split rule is the
-one of render_server.bricks (each node split along its sample's longest axis), generalized
-to any rank count: a node for k ranks puts floor(k / 2) / k of its sample on the low side.
-Planes compare (coordinate, key), so particles lying on a plane (a lattice layer) are split
-by key and the bricks stay balanced to the sampling error even on lattices.
+tree with one leaf per rank and move every particle to the rank of its leaf.
+
+The tree: if the ranks already hold balanced slabs in rank order along an axis (a sim's
+slab decomposition, its ranks' chunks in order), the planes between them, and nothing
+moves. Otherwise it is chosen on a sample gathered from all ranks (a global stride, so each
+rank contributes in proportion to its count; at most SAMPLE particles); the split rule is
+the one of render_server.bricks (each node split along its sample's longest axis),
+generalized to any rank count (a node for k ranks puts floor(k / 2) / k of its sample on
+the low side), except that a node splits along another axis when that keeps notably more
+particles on the rank they are on. Planes compare (coordinate, key), so particles lying on
+a plane (a lattice layer) are split by key and the bricks stay balanced to the sampling
+error even on lattices.
+
+The move: one Alltoallv of packed rows (position, key, fields side by side), built by a
+numba pass over the particles that leave; those that stay are copied straight into the
+result.
 
 No ghosts: primary visibility is composited by depth across ranks (render_server.composite),
 so a sphere crossing a brick face is drawn whole by the one rank that holds it.
@@ -19,11 +28,14 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from minority.render_server.bricks import _sort_by_leaf, as_positions, extent
+from minority.render_server.bricks import as_positions, extent
 from numba import njit, prange
 
 SAMPLE = 1 << 16  # particles, over all ranks, that choose the split planes
 LEAF = -1  # axis of a leaf node
+KEEP_MARGIN = 0.05  # fraction of a node's sample an axis must keep in place to beat the longest
+SLAB_BALANCE = 1.05  # most particles a rank may hold, over the mean, for its slab to stay as is
+CHUNKS = 64  # particle chunks of the parallel grouping passes
 
 
 @dataclass
@@ -52,10 +64,30 @@ class Partition:
     exchange_s: float  # classification and the Alltoallv of every array, s
 
 
+def _axis_choice(pts: np.ndarray, src: np.ndarray | None, c: int, first: int, k_low: int,
+                 longest: int) -> int:
+    """The split axis of a node: the longest one, unless another keeps notably more sample
+    particles on the rank they came from (src [m]: each sample's source rank; the low side
+    goes to ranks first .. first + k_low - 1). Slabs the ranks already hold stay put."""
+    if src is None or c == 0 or c == len(pts):
+        return longest
+    mine_low = (src >= first) & (src < first + k_low)
+    stays = np.empty(3, np.int64)
+    for a in range(3):
+        threshold = np.partition(pts[:, a], c)[c]  # the c-th coordinate: ties go either way
+        below = pts[:, a] < threshold
+        stays[a] = np.count_nonzero(below & mine_low) + np.count_nonzero(~below & ~mine_low)
+    best = int(np.argmax(stays))
+    return best if stays[best] - stays[longest] > KEEP_MARGIN * len(pts) else longest
+
+
 def build_tree(sample: np.ndarray, sample_keys: np.ndarray, ranks: int, lo: np.ndarray,
-               hi: np.ndarray) -> KdTree:
+               hi: np.ndarray, sources: np.ndarray | None = None) -> KdTree:
     """A k-d tree with `ranks` leaves over sample positions [m, 3] (m) with keys [m] int64,
-    inside the box lo..hi [3] (m). Leaf ranks are in tree order (low side first)."""
+    inside the box lo..hi [3] (m). Leaf ranks are in tree order (low side first). With
+    sources [m] int64 (the rank each sample particle is on now), a node splits along the
+    axis that keeps the most particles where they are when that beats the longest axis by
+    more than KEEP_MARGIN of the node's sample (see _axis_choice)."""
     axis, plane, pkey, low, high, rank, boxes = [], [], [], [], [], [], {}
 
     def node(index: np.ndarray, k: int, first: int, box_lo: np.ndarray, box_hi: np.ndarray) -> int:
@@ -72,9 +104,10 @@ def build_tree(sample: np.ndarray, sample_keys: np.ndarray, ranks: int, lo: np.n
             return me
         pts = sample[index]
         span = pts.max(axis=0) - pts.min(axis=0) if len(index) > 1 else box_hi - box_lo
-        a = int(np.argmax(span))  # longest axis (first on ties), as bricks._kd_level
         k_low = k // 2
         c = len(index) * k_low // k  # sample particles on the low side
+        a = _axis_choice(pts, None if sources is None else sources[index], c, first, k_low,
+                         int(np.argmax(span)))  # longest axis (first on ties), as bricks
         if c == 0 or c == len(index):  # too few samples: the middle of the box, by coordinate
             p, pk = 0.5 * (box_lo[a] + box_hi[a]), np.iinfo(np.int64).min
             go_low = pts[:, a] < p
@@ -92,9 +125,73 @@ def build_tree(sample: np.ndarray, sample_keys: np.ndarray, ranks: int, lo: np.n
         return me
 
     node(np.arange(len(sample)), ranks, 0, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+    return _tree(axis, plane, pkey, low, high, rank, boxes, ranks)
+
+
+def _tree(axis, plane, pkey, low, high, rank, boxes, ranks) -> KdTree:
     return KdTree(np.array(axis, np.int64), np.array(plane, np.float64), np.array(pkey, np.int64),
                   np.array(low, np.int64), np.array(high, np.int64), np.array(rank, np.int64),
                   np.array([boxes[r] for r in range(ranks)], np.float64).reshape(ranks, 2, 3))
+
+
+@njit(cache=True, nogil=True)
+def _first_last(positions, keys, out_coord, out_key):
+    """Per axis a, the lexicographically first and last (coordinate, key) of the particles:
+    out_coord [3, 2] float64, out_key [3, 2] int64 (column 0 first, 1 last)."""
+    for a in range(3):
+        lo_x, lo_k, hi_x, hi_k = np.inf, 0, -np.inf, 0
+        for p in range(positions.shape[0]):
+            x, k = float(positions[p, a]), keys[p]
+            if x < lo_x or (x == lo_x and k < lo_k):
+                lo_x, lo_k = x, k
+            if x > hi_x or (x == hi_x and k > hi_k):
+                hi_x, hi_k = x, k
+        out_coord[a, 0], out_coord[a, 1], out_key[a, 0], out_key[a, 1] = lo_x, hi_x, lo_k, hi_k
+
+
+def slab_tree(coord: np.ndarray, key: np.ndarray, counts: np.ndarray, lo: np.ndarray,
+              hi: np.ndarray) -> KdTree | None:
+    """The tree that leaves every particle where it is, if the ranks already hold slabs:
+    along some axis a, rank r's particles all come before rank r + 1's in (coordinate, key)
+    order, and no rank holds more than SLAB_BALANCE times the mean. coord [ranks, 3, 2]
+    float64 and key [ranks, 3, 2] int64: each rank's first and last (coordinate, key) per
+    axis (_first_last); counts [ranks]. None when no axis qualifies."""
+    ranks = len(counts)
+    if counts.min() == 0 or counts.max() > SLAB_BALANCE * counts.mean():
+        return None
+    for a in range(3):
+        last = list(zip(coord[:-1, a, 1], key[:-1, a, 1], strict=True))
+        first = list(zip(coord[1:, a, 0], key[1:, a, 0], strict=True))
+        if all(b > e for e, b in zip(last, first, strict=True)):
+            break
+    else:
+        return None
+    axis, plane, pkey, low, high, rank, boxes = [], [], [], [], [], [], {}
+
+    def node(k: int, first: int, box_lo: np.ndarray, box_hi: np.ndarray) -> int:
+        me = len(axis)
+        axis.append(LEAF)
+        plane.append(0.0)
+        pkey.append(0)
+        low.append(-1)
+        high.append(-1)
+        rank.append(-1)
+        if k == 1:
+            rank[me] = first
+            boxes[first] = (box_lo, box_hi)
+            return me
+        k_low = k // 2
+        # the high side starts at rank first + k_low's first particle
+        p, pk = float(coord[first + k_low, a, 0]), int(key[first + k_low, a, 0])
+        axis[me], plane[me], pkey[me] = a, p, pk
+        split_hi, split_lo = box_hi.copy(), box_lo.copy()
+        split_hi[a] = split_lo[a] = min(max(p, box_lo[a]), box_hi[a])
+        low[me] = node(k_low, first, box_lo, split_hi)
+        high[me] = node(k - k_low, first + k_low, split_lo, box_hi)
+        return me
+
+    node(ranks, 0, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+    return _tree(axis, plane, pkey, low, high, rank, boxes, ranks)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -128,6 +225,60 @@ def global_rows(comm, n: int) -> np.ndarray:
     return np.arange(n, dtype=np.int64) + (offset or 0)
 
 
+def _word(*row_bytes: int) -> type:
+    """The widest unsigned integer whose size divides every row's byte count."""
+    for word in (np.uint64, np.uint32, np.uint16):
+        if all(b % np.dtype(word).itemsize == 0 for b in row_bytes):
+            return word
+    return np.uint8
+
+
+def _rows(array: np.ndarray, word) -> np.ndarray:
+    """A C-contiguous array [n, ...] seen as words [n, row bytes / word size] (no copy when
+    already contiguous)."""
+    array = np.ascontiguousarray(array)
+    width = int(np.prod(array.shape[1:], dtype=np.int64)) * array.dtype.itemsize
+    return array.view(np.uint8).reshape(len(array), width).view(word)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _chunk_counts(dest, counts):
+    """counts[c, r]: particles of chunk c (of counts.shape[0] equal chunks) bound for rank r."""
+    n_chunks, n = counts.shape[0], dest.shape[0]
+    for c in prange(n_chunks):
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            counts[c, dest[p]] += 1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _slots(dest, me, offsets, slot):
+    """slot[p]: the send-buffer row of particle p (grouped by destination, input order within
+    a group), or -1 - its row among the particles that stay on rank `me`. offsets [c, r]: the
+    first row of chunk c's particles for rank r."""
+    n_chunks, n = offsets.shape[0], dest.shape[0]
+    for c in prange(n_chunks):
+        fill = offsets[c].copy()
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            d = dest[p]
+            slot[p] = fill[d] if d != me else -1 - fill[d]
+            fill[d] += 1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _scatter(src, slot, send, col, kept, kept_at):
+    """Copy row p of src [n, k] (words) to send[slot[p], col:col + k] or, for a particle that
+    stays, to kept[kept_at - 1 - slot[p]]."""
+    k = src.shape[1]
+    for p in prange(src.shape[0]):
+        s = slot[p]
+        if s >= 0:
+            for j in range(k):
+                send[s, col + j] = src[p, j]
+        else:
+            for j in range(k):
+                kept[kept_at - 1 - s, j] = src[p, j]
+
+
 def _alltoallv_rows(comm, send: np.ndarray, send_counts: np.ndarray,
                     recv_counts: np.ndarray) -> np.ndarray:
     """Exchange rows of send [n, ...] (grouped by destination rank, send_counts [ranks] rows
@@ -153,44 +304,49 @@ def _alltoallv_rows(comm, send: np.ndarray, send_counts: np.ndarray,
 
 
 def agree_tree(comm, positions: np.ndarray, keys: np.ndarray, sample: int = SAMPLE) -> KdTree:
-    """The ranks' common k-d tree: a sample of every rank's particles gathered on rank 0,
-    split there, broadcast (collective)."""
+    """The ranks' common k-d tree (collective). If the ranks already hold balanced slabs in
+    rank order along an axis (slab_tree), the tree that keeps them; otherwise a sample of
+    every rank's particles gathered on rank 0, split there (keeping particles where they
+    are when an axis allows it: build_tree's sources), broadcast."""
     from mpi4py import MPI
 
     n = len(positions)
-    total = comm.allreduce(n, op=MPI.SUM)
+    counts = np.array(comm.allgather(n), np.int64)
+    total = int(counts.sum())
     if total == 0:
         raise ValueError("no particles to repartition on any rank")
-    stride = max(1, total // sample)
     lo, hi = extent(positions) if n else (np.full(3, np.inf), np.full(3, -np.inf))
     comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
     comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
+    coord, key = np.empty((3, 2)), np.zeros((3, 2), np.int64)
+    _first_last(as_positions(positions), keys, coord, key)
+    coords, firsts = np.empty((comm.size, 3, 2)), np.empty((comm.size, 3, 2), np.int64)
+    comm.Allgather(coord, coords)
+    comm.Allgather(key, firsts)
+    slabs = slab_tree(coords, firsts, counts, lo, hi)  # the same answer on every rank
+    if slabs is not None:
+        return slabs
+    stride = max(1, total // sample)
     mine = np.ascontiguousarray(positions[::stride], np.float64)
     mine_keys = np.ascontiguousarray(keys[::stride])
     sizes = np.array(comm.gather(len(mine), root=0) or [], np.int64)
-    gathered = gathered_keys = None
+    tree = None
     if comm.rank == 0:
         gathered = np.empty((int(sizes.sum()), 3))
         gathered_keys = np.empty(int(sizes.sum()), np.int64)
         displ = np.concatenate([[0], np.cumsum(sizes)[:-1]])
         comm.Gatherv(mine, [gathered, (sizes * 3, displ * 3), MPI.DOUBLE], root=0)
         comm.Gatherv(mine_keys, [gathered_keys, (sizes, displ), MPI.INT64_T], root=0)
+        sources = np.repeat(np.arange(comm.size, dtype=np.int64), sizes)
+        tree = build_tree(gathered, gathered_keys, comm.size, lo, hi, sources)
     else:
         comm.Gatherv(mine, None, root=0)
         comm.Gatherv(mine_keys, None, root=0)
-    tree = build_tree(gathered, gathered_keys, comm.size, lo, hi) if comm.rank == 0 else None
     return comm.bcast(tree, root=0)
 
 
-def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
-             keys: np.ndarray | None = None, sample: int = SAMPLE) -> Partition:
-    """Move this rank's particles (positions [n, 3] m, fields [n] or [n, k]) to the ranks
-    whose bricks hold them (collective: every rank calls it, with the same field names).
-    keys [n] int64: distinct tie-break keys, default `global_rows`. Within one source rank,
-    particles keep their order."""
-    from mpi4py import MPI
-
-    t0 = time.perf_counter()
+def _check(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
+           keys: np.ndarray | None) -> tuple[list[str], np.ndarray]:
     n = len(positions)
     if positions.ndim != 2 or positions.shape[1] != 3:
         raise ValueError(f"positions must be [n, 3], got shape {positions.shape}")
@@ -204,6 +360,25 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
     keys = global_rows(comm, n) if keys is None else np.ascontiguousarray(keys, np.int64)
     if keys.shape != (n,):
         raise ValueError(f"keys must be [{n}], got shape {keys.shape}")
+    return names, keys
+
+
+def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
+             keys: np.ndarray | None = None, sample: int = SAMPLE) -> Partition:
+    """Move this rank's particles (positions [n, 3] m, fields [n] or [n, k]) to the ranks
+    whose bricks hold them (collective: every rank calls it, with the same field names).
+    keys [n] int64: distinct tie-break keys, default `global_rows`. The result holds the
+    particles grouped by source rank, in input order within a source; when no particle
+    leaves or reaches this rank it holds the input arrays themselves (no copy).
+
+    One Alltoallv moves every array: each particle's rows (position, key, fields) are packed
+    side by side into one send buffer by a numba pass, only for particles that leave; those
+    that stay are copied straight to their place in the result."""
+    from mpi4py import MPI
+
+    t0 = time.perf_counter()
+    n = len(positions)
+    names, keys = _check(comm, positions, fields, keys)
     if comm.size == 1:  # one brick: nothing to agree on or move
         lo, hi = extent(as_positions(positions)) if n else (np.zeros(3), np.zeros(3))
         none = np.array([-1], np.int64)
@@ -214,16 +389,45 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
                          t1 - t0, 0.0)
     tree = agree_tree(comm, positions, keys, sample)
     t1 = time.perf_counter()
+    me = comm.rank
     dest = classify(positions, keys, tree)
-    order, bounds = np.empty(n, np.int64), np.empty(comm.size + 1, np.int64)
-    _sort_by_leaf(dest, comm.size, order, bounds)  # stable counting sort by destination
-    send_counts = np.diff(bounds)
+    chunk_counts = np.zeros((min(CHUNKS, max(n, 1)), comm.size), np.int64)
+    _chunk_counts(dest, chunk_counts)
+    send_counts = chunk_counts.sum(axis=0)
     recv_counts = np.empty(comm.size, np.int64)
     comm.Alltoall([send_counts, MPI.INT64_T], [recv_counts, MPI.INT64_T])
-    out_pos = _alltoallv_rows(comm, positions[order], send_counts, recv_counts)
-    out_keys = _alltoallv_rows(comm, keys[order], send_counts, recv_counts)
-    out_fields = {k: _alltoallv_rows(comm, fields[k][order], send_counts, recv_counts)
-                  for k in names}
-    counts = np.array(comm.allgather(len(out_pos)), np.int64)
-    return Partition(out_pos, out_fields, out_keys, counts, tree, t1 - t0,
-                     time.perf_counter() - t1)
+    counts = np.array(comm.allgather(int(recv_counts.sum())), np.int64)
+    kept = int(send_counts[me])
+    arrays = [positions, keys] + [fields[k] for k in names]
+    if kept == n and recv_counts.sum() == kept:  # nothing leaves, nothing arrives
+        return Partition(positions, {k: fields[k] for k in names}, keys, counts, tree, t1 - t0,
+                         time.perf_counter() - t1)
+    # rows of chunk c for rank r start at offsets[c, r]: in the send buffer (r != me, groups
+    # in rank order without me) or among the particles that stay (r == me)
+    send_counts[me] = 0
+    group = np.cumsum(send_counts) - send_counts
+    group[me] = 0
+    offsets = group[None, :] + np.cumsum(chunk_counts, axis=0) - chunk_counts
+    slot = np.empty(n, np.int64)
+    _slots(dest, me, offsets, slot)
+    del dest
+    word = _word(*(_rows(a[:0], np.uint8).shape[1] for a in arrays))
+    widths = [_rows(a[:0], word).shape[1] for a in arrays]
+    cols = np.cumsum([0] + widths)
+    recv_counts[me] = 0
+    before = int(recv_counts[:me].sum())  # rows from lower ranks come first in the result
+    m = int(recv_counts.sum()) + kept
+    out = [np.empty((m, *a.shape[1:]), a.dtype) for a in arrays]
+    send = np.empty((int(send_counts.sum()), int(cols[-1])), word)
+    for a, o, col in zip(arrays, out, cols, strict=False):
+        _scatter(_rows(a, word), slot, send, col, _rows(o, word), before)
+    del slot
+    recv = _alltoallv_rows(comm, send, send_counts, recv_counts)
+    del send
+    for o, col, width in zip(out, cols, widths, strict=False):
+        rows = _rows(o, word)
+        rows[:before] = recv[:before, col:col + width]
+        rows[before + kept:] = recv[before:, col:col + width]
+    del recv
+    return Partition(out[0], dict(zip(names, out[2:], strict=True)), out[1], counts, tree,
+                     t1 - t0, time.perf_counter() - t1)

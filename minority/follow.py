@@ -441,8 +441,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     coarse-grain, roll the GNS to rest, then ask plan() -> (from_s, frames): when the spec
     will be adopted (s of the run's time) and how many frames it may plan; join the events
     and plan (gns.oracle) windows from from_s on within those frames (none when the joined
-    forecast has the flow at rest by then: the spec in force ended at from_s, with the
-    forecast's events). stats: the checkpoint's
+    forecast has the flow at rest by then or the budget is spent: the spec in force ended
+    at from_s, with the forecast's events). stats: the checkpoint's
     (particle_spacing_m, frame_interval_s). Returns the spec (snapshots cleared) and what
     its provenance records; TooLate when from_s is past the run's last model frame."""
     t_start = time.perf_counter()
@@ -460,7 +460,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
     at, ratio = joined_events(flow, t0, dt, traj, c1)
-    rest = at["runout_end"] <= from_s  # at rest by then: events only, no frame planned
+    # at rest by then, or the budget spent (under 2 frames a view): events only, no frame
+    rest = at["runout_end"] <= from_s or frames_left < 2 * len(spec.views)
     v0 = spec.to_dict()["views"][0]
     options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(spec.views), 6),
                             width=v0["width"],

@@ -355,10 +355,11 @@ def test_a_snapshot_keeps_the_servers_cache_of_the_outside(tmp_path):
         assert not len(chunks[k].evict_ids)
 
 
-def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption():
+@pytest.mark.parametrize("frames", [12, 5])
+def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames):
     """The real re-forecast on a small column (the shipped checkpoint, 128 particles at its
-    spacing): rolled to rest, planned from plan()'s time within its frames, a spec that
-    encodes (its provenance plain JSON)."""
+    spacing): rolled to rest, planned from plan()'s time within its frames (none when under
+    2 a view are left), a spec that encodes (its provenance plain JSON)."""
     from minority.gns.train import load_checkpoint
 
     from minority.demo import CHECKPOINT
@@ -379,13 +380,14 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption():
 
     def plan():
         asked.append(flow.now_s)
-        return t0 + 0.04, 12
+        return t0 + 0.04, frames
 
     new, info = reforecast(model, stats, spec(), flow, snaps,
                            Scene(np.array([[0, 0.4], [0, 0.04], [0, 0.2]]), 30.0, 0.4), plan)
     assert asked and info["from_s"] == pytest.approx(t0 + 0.04) and info["particles"] == 128
     assert Spec.from_dict(new.to_dict()) == new and new.encode()
     windows = [w for v in new.views for w in v.schedule]
+    assert frames >= 6 or not info["frames_planned"]  # the budget spent: events only
     if info["frames_planned"]:  # planned from its adoption on
         assert 6 <= info["frames_planned"] <= 12
         assert min(w.t_start_s for w in windows) >= t0 + 0.04 - 1e-9

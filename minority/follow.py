@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from minority.gns.events import EVENT_NAMES, events_from_series, fast_windows, speeds
-from minority.gns.oracle import Oracle, OracleOptions
+from minority.gns.oracle import VIEWS, Oracle, OracleOptions
 from minority.protocol.flow import (
     MOVING_SPEED_FRACTION,
     SPEED_QUANTILE,
@@ -460,10 +460,11 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
     at, ratio = joined_events(flow, t0, dt, traj, c1)
-    # at rest by then, or the budget spent (under 2 frames a view): events only, no frame
-    rest = at["runout_end"] <= from_s or frames_left < 2 * len(spec.views)
+    # at rest by then, or the budget spent (under 2 frames a view the oracle plans): events
+    # only, no frame
+    rest = at["runout_end"] <= from_s or frames_left < 2 * len(VIEWS)
     v0 = spec.to_dict()["views"][0]
-    options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(spec.views), 6),
+    options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(VIEWS)),
                             width=v0["width"],
                             height=v0["height"],
                             colormap=v0["colormap"] if isinstance(v0["colormap"], str)

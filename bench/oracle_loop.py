@@ -96,18 +96,16 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
             [*me, "serve", "--spec", str(spec), "--out", str(out / "frames"), "--record",
              str(log), "--listen", endpoint, "--exit-when-done"], stdout=server_log,
             stderr=subprocess.STDOUT, env=env))
-        if closed:
-            procs.append(subprocess.Popen(
-                [*me, "oracle", "follow", RUN, "--scene", str(scene), "--ranks", "2",
-                 "--connect", endpoint, "--threads", str(threads), "--timeout",
-                 str(timeout_s)], stdout=flog, stderr=subprocess.STDOUT, env=env))
         try:
-            if closed:  # the follower reads the run from its first Stats on
-                deadline = time.monotonic() + 300
-                while "following run" not in (out / "follow.log").read_text():
-                    if procs[-1].poll() is not None or time.monotonic() > deadline:
-                        raise RuntimeError(f"the follower did not start: {out / 'follow.log'}")
-                    time.sleep(0.2)
+            if closed:  # once the server serves the spec (a busy machine starts it slowly)
+                wait_for_line(out / "server.log", "serving run", procs[0], "the server")
+                procs.append(subprocess.Popen(
+                    [*me, "oracle", "follow", RUN, "--scene", str(scene), "--ranks", "2",
+                     "--connect", endpoint, "--threads", str(threads), "--timeout",
+                     str(timeout_s), "--wait", "120"], stdout=flog, stderr=subprocess.STDOUT,
+                    env=env))
+                # the follower reads the run from its first Stats on
+                wait_for_line(out / "follow.log", "following run", procs[-1], "the follower")
             t0 = time.perf_counter()
             sim = subprocess.run([*me, "sim", str(scene), "--ranks", "2", "--run", RUN,
                                   "--connect", endpoint, "--wait", "60", "--out",
@@ -129,6 +127,16 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
                         p.wait()
     logs = sorted(out.glob("run*.mcap"), key=lambda f: f.stat().st_mtime)
     return (logs[-1] if logs else log), wall
+
+
+def wait_for_line(path: Path, text: str, proc: subprocess.Popen, what: str,
+                  timeout_s: float = 300.0) -> None:
+    """Until `text` is in the file `proc` writes; RuntimeError when it exits or times out."""
+    deadline = time.monotonic() + timeout_s
+    while text not in path.read_text():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"{what} did not start: {path}")
+        time.sleep(0.2)
 
 
 def in_force_within(log: Path, result: dict) -> int:

@@ -121,7 +121,7 @@ def start_follower(o: DemoOptions, scene: Path, endpoint: str, env: dict, log) -
     follower = subprocess.Popen(
         [sys.executable, "-m", "minority", "oracle", "follow", RUN, "--scene", str(scene),
          "--checkpoint", str(o.checkpoint), "--ranks", str(o.ranks), "--connect", endpoint,
-         "--threads", str(o.threads), "--timeout", str(o.timeout_s)],
+         "--threads", str(o.threads), "--timeout", str(o.timeout_s), "--wait", "120"],
         stdout=log, stderr=subprocess.STDOUT, env=env)
     deadline = time.monotonic() + 120
     while "following run" not in Path(log.name).read_text():

@@ -14,9 +14,10 @@ particles on the rank they are on. Planes compare (coordinate, key), so particle
 a plane (a lattice layer) are split by key and the bricks stay balanced to the sampling
 error even on lattices.
 
-The move: one Alltoallv of packed rows (position, key, fields side by side), built by a
-numba pass over the particles that leave; those that stay are copied straight into the
-result.
+The move: rounds of one Alltoallv each, of packed rows (position, key, fields side by
+side) built by numba passes over the particles that leave; those that stay are copied
+straight into the result (a Pool keeps it from step to step). A round sends at most
+ROUND_BYTES, so the send and receive buffers stay small.
 
 No ghosts: primary visibility is composited by depth across ranks (render_server.composite),
 so a sphere crossing a brick face is drawn whole by the one rank that holds it.
@@ -36,6 +37,7 @@ LEAF = -1  # axis of a leaf node
 KEEP_MARGIN = 0.05  # fraction of a node's sample an axis must keep in place to beat the longest
 SLAB_BALANCE = 1.05  # most particles a rank may hold, over the mean, for its slab to stay as is
 CHUNKS = 64  # particle chunks of the parallel grouping passes
+ROUND_BYTES = 16 << 20  # most bytes a rank sends (and receives) in one exchange round
 
 
 @dataclass
@@ -134,16 +136,31 @@ def _tree(axis, plane, pkey, low, high, rank, boxes, ranks) -> KdTree:
                   np.array([boxes[r] for r in range(ranks)], np.float64).reshape(ranks, 2, 3))
 
 
-@njit(cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _first_last(positions, keys, out_coord, out_key):
     """Per axis a, the lexicographically first and last (coordinate, key) of the particles:
-    out_coord [3, 2] float64, out_key [3, 2] int64 (column 0 first, 1 last)."""
+    out_coord [3, 2] float64, out_key [3, 2] int64 (column 0 first, 1 last; inf / -inf when
+    there are none). Chunks in parallel, then combined."""
+    n, n_chunks = positions.shape[0], CHUNKS
+    coord = np.empty((n_chunks, 3, 2))
+    key = np.zeros((n_chunks, 3, 2), np.int64)
+    for c in prange(n_chunks):
+        for a in range(3):
+            lo_x, lo_k, hi_x, hi_k = np.inf, 0, -np.inf, 0
+            for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+                x, k = float(positions[p, a]), keys[p]
+                if x < lo_x or (x == lo_x and k < lo_k):
+                    lo_x, lo_k = x, k
+                if x > hi_x or (x == hi_x and k > hi_k):
+                    hi_x, hi_k = x, k
+            coord[c, a, 0], coord[c, a, 1], key[c, a, 0], key[c, a, 1] = lo_x, hi_x, lo_k, hi_k
     for a in range(3):
         lo_x, lo_k, hi_x, hi_k = np.inf, 0, -np.inf, 0
-        for p in range(positions.shape[0]):
-            x, k = float(positions[p, a]), keys[p]
+        for c in range(n_chunks):
+            x, k = coord[c, a, 0], key[c, a, 0]
             if x < lo_x or (x == lo_x and k < lo_k):
                 lo_x, lo_k = x, k
+            x, k = coord[c, a, 1], key[c, a, 1]
             if x > hi_x or (x == hi_x and k > hi_k):
                 hi_x, hi_k = x, k
         out_coord[a, 0], out_coord[a, 1], out_key[a, 0], out_key[a, 1] = lo_x, hi_x, lo_k, hi_k
@@ -208,9 +225,11 @@ def _classify(positions, keys, axis, plane, pkey, low, high, rank, dest):
         dest[p] = rank[node]
 
 
-def classify(positions: np.ndarray, keys: np.ndarray, tree: KdTree) -> np.ndarray:
-    """The owner rank [n] int64 of each of positions [n, 3] (m) with keys [n] int64."""
-    dest = np.empty(len(positions), np.int64)
+def classify(positions: np.ndarray, keys: np.ndarray, tree: KdTree, dtype=np.int64
+             ) -> np.ndarray:
+    """The owner rank [n] (int64, or `dtype`) of each of positions [n, 3] (m) with keys [n]
+    int64."""
+    dest = np.empty(len(positions), dtype)
     _classify(as_positions(positions), keys, tree.axis, tree.plane, tree.pkey, tree.low,
               tree.high, tree.rank, dest)
     return dest
@@ -223,6 +242,27 @@ def global_rows(comm, n: int) -> np.ndarray:
 
     offset = comm.exscan(n, op=MPI.SUM) if comm.size > 1 else 0
     return np.arange(n, dtype=np.int64) + (offset or 0)
+
+
+class Pool:
+    """Buffers an exchange reuses from step to step, by name: once grown, a step's result
+    costs no page faults (a quarter more than asked is allocated, so slowly growing steps do
+    not reallocate every time)."""
+
+    def __init__(self):
+        self.buffers: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        nbytes = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        buf = self.buffers.get(name)
+        if buf is None or len(buf) < nbytes:
+            self.buffers.pop(name, None)  # free the old one before allocating
+            buf = self.buffers[name] = np.empty(max(nbytes + nbytes // 4, 64), np.uint8)
+        return buf[:nbytes].view(dtype).reshape(shape)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(b.nbytes for b in self.buffers.values())
 
 
 def _word(*row_bytes: int) -> type:
@@ -251,60 +291,61 @@ def _chunk_counts(dest, counts):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _slots(dest, me, offsets, slot):
-    """slot[p]: the send-buffer row of particle p (grouped by destination, input order within
-    a group), or -1 - its row among the particles that stay on rank `me`. offsets [c, r]: the
-    first row of chunk c's particles for rank r."""
+def _order(dest, offsets, order):
+    """order[offsets[c, r] + i]: the i-th particle of chunk c bound for rank r (a stable
+    counting sort by destination, chunks in parallel)."""
     n_chunks, n = offsets.shape[0], dest.shape[0]
     for c in prange(n_chunks):
         fill = offsets[c].copy()
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            d = dest[p]
-            slot[p] = fill[d] if d != me else -1 - fill[d]
-            fill[d] += 1
+            order[fill[dest[p]]] = p
+            fill[dest[p]] += 1
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _scatter(src, slot, send, col, kept, kept_at):
-    """Copy row p of src [n, k] (words) to send[slot[p], col:col + k] or, for a particle that
-    stays, to kept[kept_at - 1 - slot[p]]."""
+def _pack_rows(src, order, starts, counts, at, dst, col):
+    """For every group g: dst[at[g] + i, col:col + k] = src[order[starts[g] + i]] for
+    i < counts[g] (src [n, k] words)."""
     k = src.shape[1]
-    for p in prange(src.shape[0]):
-        s = slot[p]
-        if s >= 0:
+    for g in range(starts.shape[0]):
+        for i in prange(counts[g]):
+            p = order[starts[g] + i]
             for j in range(k):
-                send[s, col + j] = src[p, j]
-        else:
-            for j in range(k):
-                kept[kept_at - 1 - s, j] = src[p, j]
+                dst[at[g] + i, col + j] = src[p, j]
 
 
-def _alltoallv_rows(comm, send: np.ndarray, send_counts: np.ndarray,
-                    recv_counts: np.ndarray) -> np.ndarray:
-    """Exchange rows of send [n, ...] (grouped by destination rank, send_counts [ranks] rows
-    each); returns the received rows [sum(recv_counts), ...], grouped by source rank. Counts
-    are in rows of a contiguous MPI type, so no count overflows int32 below 2^31 rows."""
+@njit(parallel=True, cache=True, nogil=True)
+def _unpack_rows(src, col, starts, counts, at, dst):
+    """For every group g: dst[at[g] + i] = src[starts[g] + i, col:col + k] for i <
+    counts[g] (dst [m, k] words)."""
+    k = dst.shape[1]
+    for g in range(starts.shape[0]):
+        for i in prange(counts[g]):
+            for j in range(k):
+                dst[at[g] + i, j] = src[starts[g] + i, col + j]
+
+
+def _alltoallv_into(comm, send: np.ndarray, send_counts: np.ndarray, recv: np.ndarray,
+                    recv_counts: np.ndarray) -> None:
+    """Exchange rows of send [k, w] (grouped by destination rank, send_counts [ranks] rows
+    each) into recv [sum(recv_counts), w], grouped by source rank. Counts are in rows of a
+    contiguous MPI type, so no count overflows int32 below 2^31 rows."""
     from mpi4py import MPI
 
-    send = np.ascontiguousarray(send)
-    row_bytes = send[:1].nbytes if len(send) else int(np.prod(send.shape[1:], dtype=np.int64)
-                                                       * send.dtype.itemsize)
-    recv = np.empty((int(recv_counts.sum()), *send.shape[1:]), send.dtype)
-    if row_bytes == 0:
-        return recv
-    row = MPI.BYTE.Create_contiguous(row_bytes).Commit()
+    row = MPI.BYTE.Create_contiguous(send.shape[1] * send.itemsize).Commit()
     try:
-        sd = np.concatenate([[0], np.cumsum(send_counts)[:-1]])
-        rd = np.concatenate([[0], np.cumsum(recv_counts)[:-1]])
-        comm.Alltoallv([send.view(np.uint8).reshape(-1), (send_counts, sd), row],
-                       [recv.view(np.uint8).reshape(-1), (recv_counts, rd), row])
+        comm.Alltoallv([send.view(np.uint8).reshape(-1),
+                        (send_counts, np.cumsum(send_counts) - send_counts), row],
+                       [recv.view(np.uint8).reshape(-1),
+                        (recv_counts, np.cumsum(recv_counts) - recv_counts), row])
     finally:
         row.Free()
-    return recv
 
 
-def agree_tree(comm, positions: np.ndarray, keys: np.ndarray, sample: int = SAMPLE) -> KdTree:
-    """The ranks' common k-d tree (collective). If the ranks already hold balanced slabs in
+def agree_tree(comm, positions: np.ndarray, keys: np.ndarray, sample: int = SAMPLE
+               ) -> tuple[KdTree, bool]:
+    """The ranks' common k-d tree (collective), and whether it keeps every particle where it
+    is. If the ranks already hold balanced slabs in
     rank order along an axis (slab_tree), the tree that keeps them; otherwise a sample of
     every rank's particles gathered on rank 0, split there (keeping particles where they
     are when an axis allows it: build_tree's sources), broadcast."""
@@ -315,17 +356,17 @@ def agree_tree(comm, positions: np.ndarray, keys: np.ndarray, sample: int = SAMP
     total = int(counts.sum())
     if total == 0:
         raise ValueError("no particles to repartition on any rank")
-    lo, hi = extent(positions) if n else (np.full(3, np.inf), np.full(3, -np.inf))
+    coord, key = np.empty((3, 2)), np.zeros((3, 2), np.int64)
+    _first_last(as_positions(positions), keys, coord, key)  # also the extent: coordinates
+    lo, hi = coord[:, 0].copy(), coord[:, 1].copy()
     comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
     comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
-    coord, key = np.empty((3, 2)), np.zeros((3, 2), np.int64)
-    _first_last(as_positions(positions), keys, coord, key)
     coords, firsts = np.empty((comm.size, 3, 2)), np.empty((comm.size, 3, 2), np.int64)
     comm.Allgather(coord, coords)
     comm.Allgather(key, firsts)
     slabs = slab_tree(coords, firsts, counts, lo, hi)  # the same answer on every rank
     if slabs is not None:
-        return slabs
+        return slabs, True
     stride = max(1, total // sample)
     mine = np.ascontiguousarray(positions[::stride], np.float64)
     mine_keys = np.ascontiguousarray(keys[::stride])
@@ -342,7 +383,7 @@ def agree_tree(comm, positions: np.ndarray, keys: np.ndarray, sample: int = SAMP
     else:
         comm.Gatherv(mine, None, root=0)
         comm.Gatherv(mine_keys, None, root=0)
-    return comm.bcast(tree, root=0)
+    return comm.bcast(tree, root=0), False
 
 
 def _check(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
@@ -364,70 +405,95 @@ def _check(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
 
 
 def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
-             keys: np.ndarray | None = None, sample: int = SAMPLE) -> Partition:
+             keys: np.ndarray | None = None, sample: int = SAMPLE, pool: Pool | None = None
+             ) -> Partition:
     """Move this rank's particles (positions [n, 3] m, fields [n] or [n, k]) to the ranks
     whose bricks hold them (collective: every rank calls it, with the same field names).
     keys [n] int64: distinct tie-break keys, default `global_rows`. The result holds the
-    particles grouped by source rank, in input order within a source; when no particle
-    leaves or reaches this rank it holds the input arrays themselves (no copy).
+    particles grouped by source rank, in input order within a source; the input arrays
+    themselves when no particle leaves or reaches this rank, else arrays of `pool` (valid
+    until the pool's next exchange) or new ones.
 
-    One Alltoallv moves every array: each particle's rows (position, key, fields) are packed
-    side by side into one send buffer by a numba pass, only for particles that leave; those
-    that stay are copied straight to their place in the result."""
+    The particles that leave go in rounds of at most ROUND_BYTES sent per rank: each round
+    packs their rows (position, key, fields side by side) into one send buffer (numba) and
+    moves them with one Alltoallv; those that stay are copied straight into the result."""
     from mpi4py import MPI
 
     t0 = time.perf_counter()
     n = len(positions)
     names, keys = _check(comm, positions, fields, keys)
+    given = {k: fields[k] for k in names}
     if comm.size == 1:  # one brick: nothing to agree on or move
         lo, hi = extent(as_positions(positions)) if n else (np.zeros(3), np.zeros(3))
         none = np.array([-1], np.int64)
         tree = KdTree(np.array([LEAF], np.int64), np.zeros(1), np.zeros(1, np.int64), none,
                       none, np.zeros(1, np.int64), np.array([[lo, hi]], np.float64))
-        t1 = time.perf_counter()
-        return Partition(positions, {k: fields[k] for k in names}, keys, np.array([n]), tree,
-                         t1 - t0, 0.0)
-    tree = agree_tree(comm, positions, keys, sample)
+        return Partition(positions, given, keys, np.array([n]), tree,
+                         time.perf_counter() - t0, 0.0)
+    tree, in_place = agree_tree(comm, positions, keys, sample)
     t1 = time.perf_counter()
-    me = comm.rank
-    dest = classify(positions, keys, tree)
-    chunk_counts = np.zeros((min(CHUNKS, max(n, 1)), comm.size), np.int64)
+    if in_place:  # slabs kept: every particle is on its brick's rank already
+        return Partition(positions, given, keys, np.array(comm.allgather(n), np.int64), tree,
+                         t1 - t0, time.perf_counter() - t1)
+    me, ranks = comm.rank, comm.size
+    dest = classify(positions, keys, tree, np.int32)
+    chunk_counts = np.zeros((min(CHUNKS, max(n, 1)), ranks), np.int64)
     _chunk_counts(dest, chunk_counts)
     send_counts = chunk_counts.sum(axis=0)
-    recv_counts = np.empty(comm.size, np.int64)
+    recv_counts = np.empty(ranks, np.int64)
     comm.Alltoall([send_counts, MPI.INT64_T], [recv_counts, MPI.INT64_T])
     counts = np.array(comm.allgather(int(recv_counts.sum())), np.int64)
     kept = int(send_counts[me])
-    arrays = [positions, keys] + [fields[k] for k in names]
-    if kept == n and recv_counts.sum() == kept:  # nothing leaves, nothing arrives
-        return Partition(positions, {k: fields[k] for k in names}, keys, counts, tree, t1 - t0,
-                         time.perf_counter() - t1)
-    # rows of chunk c for rank r start at offsets[c, r]: in the send buffer (r != me, groups
-    # in rank order without me) or among the particles that stay (r == me)
-    send_counts[me] = 0
-    group = np.cumsum(send_counts) - send_counts
-    group[me] = 0
-    offsets = group[None, :] + np.cumsum(chunk_counts, axis=0) - chunk_counts
-    slot = np.empty(n, np.int64)
-    _slots(dest, me, offsets, slot)
+    leaving = send_counts.copy()
+    leaving[me] = 0
+    most = comm.allreduce(int(leaving.max()), op=MPI.MAX)  # the longest send to one rank
+    if most == 0:  # nothing moves anywhere
+        return Partition(positions, given, keys, counts, tree, t1 - t0, time.perf_counter() - t1)
+    # order: the particles leaving, grouped by destination, then (from n - kept) those staying
+    group = np.cumsum(leaving) - leaving
+    group[me] = n - kept
+    order = np.empty(n, np.int64)
+    _order(dest, group[None, :] + np.cumsum(chunk_counts, axis=0) - chunk_counts, order)
     del dest
+    arrays = [positions, keys] + [given[k] for k in names]
     word = _word(*(_rows(a[:0], np.uint8).shape[1] for a in arrays))
-    widths = [_rows(a[:0], word).shape[1] for a in arrays]
+    src = [_rows(a, word) for a in arrays]
+    widths = [r.shape[1] for r in src]
     cols = np.cumsum([0] + widths)
-    recv_counts[me] = 0
-    before = int(recv_counts[:me].sum())  # rows from lower ranks come first in the result
-    m = int(recv_counts.sum()) + kept
-    out = [np.empty((m, *a.shape[1:]), a.dtype) for a in arrays]
-    send = np.empty((int(send_counts.sum()), int(cols[-1])), word)
-    for a, o, col in zip(arrays, out, cols, strict=False):
-        _scatter(_rows(a, word), slot, send, col, _rows(o, word), before)
-    del slot
-    recv = _alltoallv_rows(comm, send, send_counts, recv_counts)
-    del send
-    for o, col, width in zip(out, cols, widths, strict=False):
-        rows = _rows(o, word)
-        rows[:before] = recv[:before, col:col + width]
-        rows[before + kept:] = recv[before:, col:col + width]
-    del recv
+    row_words = int(cols[-1])
+    arriving = recv_counts.copy()
+    arriving[me] = 0
+    untouched = kept == n and arriving.sum() == 0  # others exchange, this rank keeps its own
+    m = kept + int(arriving.sum())
+
+    def new(i: int, shape: tuple, dtype) -> np.ndarray:
+        return np.empty(shape, dtype) if pool is None else pool.get(f"out{i}", shape, dtype)
+
+    out = arrays if untouched else [new(i, (m, *a.shape[1:]), a.dtype)
+                                    for i, a in enumerate(arrays)]
+    at = np.cumsum(recv_counts) - recv_counts  # result rows by source rank, this one's own
+    one = np.ones(1, np.int64)
+    if not untouched:
+        for a, o in zip(src, out, strict=True):
+            _pack_rows(a, order, np.array([n - kept]), kept * one, at[me] * one, _rows(o, word),
+                       0)
+    # rounds: at most `per` rows to each rank, so send and receive stay within ROUND_BYTES
+    per = max(1, ROUND_BYTES // (row_words * np.dtype(word).itemsize * (ranks - 1)))
+    rounds = -(-most // per)
+    send_buf = np.empty(int(np.minimum(leaving, per).sum()) * row_words, word)
+    recv_buf = np.empty(int(np.minimum(arriving, per).sum()) * row_words, word)
+    for r in range(rounds):
+        send_n = np.clip(leaving - r * per, 0, per)
+        recv_n = np.clip(arriving - r * per, 0, per)
+        send = send_buf[:int(send_n.sum()) * row_words].reshape(-1, row_words)
+        recv = recv_buf[:int(recv_n.sum()) * row_words].reshape(-1, row_words)
+        for a, col in zip(src, cols, strict=False):
+            _pack_rows(a, order, group + r * per, send_n, np.cumsum(send_n) - send_n, send,
+                       col)
+        _alltoallv_into(comm, send, send_n, recv, recv_n)
+        for o, col in zip([] if untouched else out, cols, strict=False):
+            _unpack_rows(recv, col, np.cumsum(recv_n) - recv_n, recv_n, at + r * per,
+                         _rows(o, word))
+    del send_buf, recv_buf  # freed before rendering: not part of its peak
     return Partition(out[0], dict(zip(names, out[2:], strict=True)), out[1], counts, tree,
                      t1 - t0, time.perf_counter() - t1)

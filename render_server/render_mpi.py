@@ -27,7 +27,7 @@ import numpy as np
 from minority.protocol.spec import ID_FIELD, Spec, View, render_radius_m
 from minority.protocol.view import NO_ANNOTATIONS
 from minority.render_server.composite import composite
-from minority.render_server.distribute import Partition, exchange
+from minority.render_server.distribute import Partition, Pool, exchange
 from minority.render_server.frames import (
     RenderedView,
     StepLike,
@@ -74,10 +74,12 @@ class _LocalStep:
 
 
 class Layers:
-    """Per-view depth and key buffers of one image size, reused step after step."""
+    """Per-view depth and key buffers of one image size, and the exchange's buffers (pool),
+    reused step after step."""
 
     def __init__(self):
         self.buffers: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.pool = Pool()
 
     def get(self, view: View) -> tuple[np.ndarray, np.ndarray]:
         size = view.width * view.height
@@ -136,7 +138,8 @@ def render_views_distributed(comm, step: StepLike, spec: Spec, canvases: dict[st
     radius = render_radius_m(spec, step.spacing_m)
     part: Partition | None = None
     if drawable:
-        part = exchange(comm, step.positions, {k: step.fields[k] for k in sorted(needed)}, keys)
+        part = exchange(comm, step.positions, {k: step.fields[k] for k in sorted(needed)}, keys,
+                        pool=layers.pool)
         times.exchange_s = part.sample_s + part.exchange_s
         times.counts = part.counts.tolist()
         local = _LocalStep(step.step, step.time_s, step.prev_time_s, part.positions, part.fields,
@@ -217,7 +220,7 @@ def render_step_distributed(comm, positions: np.ndarray, fields: dict[str, np.nd
     t0 = time.perf_counter()
     times = PhaseTimes()
     part = exchange(comm, positions, {k: fields[k] for k in sorted({v.field for v in views})},
-                    keys)
+                    keys, pool=layers.pool)
     times.exchange_s = part.sample_s + part.exchange_s
     times.counts = part.counts.tolist()
     t1 = time.perf_counter()

@@ -11,18 +11,27 @@ had received them from its sim ranks). Prints one JSON line per configuration:
  "exchange_s", "setup_s", "render_s", "composite_s", "total_s", "peak_rss_bytes": [per rank],
  "counts": [particles per rank after the exchange]}
 
-receive_s: decoding the rank's chunk (protocol checks, no network); exchange_s: sample, k-d
-tree, classification, Alltoallv; setup_s: bricks; render_s: ray casting and shading;
-composite_s: direct-send compositing and the gather to rank 0; total_s: receive plus the
-whole distributed step. Each phase is the slowest rank's, the median of REPEATS steps after
-one warm-up step; peak RSS is each process's maximum resident set (ru_maxrss), which includes
-the interpreter, numba and MPI (the "baseline_rss_bytes" line says how much: a process that
-imported everything and rendered a tiny step).
+receive_s: decoding the rank's chunk (protocol checks, no network); exchange_s: the slab
+test, sample, k-d tree, classification and the packed Alltoallv rounds (render_server.
+distribute); setup_s: bricks; render_s: ray casting and shading; composite_s: sparse
+direct-send compositing and the gather to rank 0; total_s: receive plus the whole
+distributed step. Each phase is the slowest rank's, the median of REPEATS steps after one
+warm-up step; peak RSS is each process's maximum resident set (ru_maxrss), which includes
+the interpreter, numba and MPI (the "baseline_rss_bytes" lines, at N = 1 and 2, say how
+much: a process that imported everything and rendered a tiny step; they also compile every
+kernel, so no run's peak includes compilation).
 
-Then "render_mpi_model" lines: time per step for N = 1 .. 64 ranks from the measured costs
-(per particle of setup and render, per pixel of render and compositing, per particle moved,
-per message), one core per rank: t(N) = c_recv n/N + c_move n/N (N-1)/N + c_msg (N - 1)
-+ c_part n/N + c_pix P + c_comp P (N-1)/N + c_gather P/N (N - 1).
+"render_mpi_ratio" lines compare N = 2 with N = 1 per step and size (total time, the
+composite's share of the N = 2 total, peak RSS, and peak RSS above each one's baseline).
+
+"render_mpi_model" lines: each step's time per step for N = 1 .. 64 ranks at 1024x768 from
+its N = 2 costs (bench.render_mpi.costs: per particle of receive, exchange, setup plus
+render; per pixel of render and composite; per message; bytes per particle), one core per
+rank, messages at the measured shared-memory cost:
+t(N) = c_recv n/N + c_move n/N 2(N-1)/N + c_msg (N-1) + c_part n/N + c_pix P + c_comp P
++ 2 c_msg (N-1), peak RSS per rank = baseline + bytes_per_particle n/N.
+"render_mpi_large": what a LARGE_RUN-particle run would need on that model (from the random
+step's costs): ranks, peak RSS per rank, time per step at 1024x768.
 """
 
 from __future__ import annotations
@@ -45,6 +54,9 @@ REPEATS = 3
 CAMERA = {"position": [0.55, -0.45, 0.45], "focal_point": [0.072, 0.072, 0.14],
           "view_up": [0, 0, 1], "view_angle_deg": 30}
 MODEL_RANKS = (1, 2, 4, 8, 16, 32, 64)
+LARGE_RUN = 100_000_000  # particles of the run the "render_mpi_large" line sizes
+MEMORY_PER_RANK = 4 << 30  # bytes: a core's share of a typical HPC node (e.g. 256 GB / 64)
+STEP_S = 1.0  # s: the time per step that line aims for
 TIMEOUT_S = 1800
 
 
@@ -76,7 +88,9 @@ def random_share(n: int, rank: int, ranks: int) -> tuple[np.ndarray, np.ndarray,
     rng = np.random.default_rng(1000 + rank)
     k = n * (rank + 1) // ranks - n * rank // ranks
     lo, hi = np.array(COLUMN_BOX_M)
-    pos = (lo + (hi - lo) * rng.random((k, 3), dtype=np.float32)).astype(np.float32)
+    pos = rng.random((k, 3), dtype=np.float32)  # in place: no float64 copy inflates the peak
+    pos *= (hi - lo).astype(np.float32)
+    pos += lo.astype(np.float32)
     disp = np.zeros_like(pos)
     disp[:, 0] = pos[:, 2]
     spacing = float(np.prod(hi - lo) / n) ** (1 / 3)
@@ -201,30 +215,73 @@ def launch(kind: str, n: int, ranks: int, threads: int) -> list[dict]:
     return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
 
 
-def model(one: dict, two: dict, big_one: dict, big_two: dict) -> list[dict]:
-    """Per-step time for N ranks from the N = 2 runs at two image sizes (same step), with
-    the N = 1 run for receive (per particle)."""
-    n, pix, big_pix = one["particles"], one["width"] * one["height"], big_one["width"] * big_one["height"]
-    half = n / 2
-    c_recv = two["receive_s"] / half
-    c_move = two["exchange_s"] / (half / 2)  # per particle moved; about half move at N = 2
-    c_pix = max(big_two["render_s"] - two["render_s"], 0.0) / (big_pix - pix)
-    c_part = max(two["render_s"] + two["setup_s"] - c_pix * pix, 0.0) / half
-    c_comp = two["composite_s"] / (pix / 2)
+def costs(two: dict, big_two: dict, base_two: dict) -> dict:
+    """Unit costs from the N = 2 runs of one step at two image sizes (one core per rank):
+    per particle held (receive, exchange, setup plus render), per pixel (render: the shading
+    and capture passes every rank makes over the whole image; composite: counting, packing,
+    merging and the gather), per message, and bytes per particle held (peak RSS over the
+    N = 2 baseline process)."""
+    half = two["particles"] / 2
+    pix = two["width"] * two["height"]
+    big_pix = big_two["width"] * big_two["height"]
+    drawn, big_drawn = two["render_s"] + two["setup_s"], big_two["render_s"] + big_two["setup_s"]
+    c_pix = max(big_drawn - drawn, 0.0) / (big_pix - pix)
     c_msg = two["message_s"]
-    out = []
-    for ranks in MODEL_RANKS:
-        share, other = n / ranks, (ranks - 1) / ranks
-        parts = {"receive_s": c_recv * share,
-                 "exchange_s": (c_move * share * other + c_msg * (ranks - 1)) if ranks > 1 else 0.0,
-                 "render_s": c_part * share + c_pix * pix,
-                 "composite_s": (c_comp * pix * other + c_msg * 2 * (ranks - 1)) if ranks > 1
-                 else 0.0}
-        out.append({"bench": "render_mpi_model", "particles": n, "width": one["width"],
-                    "height": one["height"], "ranks": ranks,
-                    **{k: round(v, 4) for k, v in parts.items()},
-                    "total_s": round(sum(parts.values()), 4)})
-    return out
+    return {"c_recv": two["receive_s"] / half,
+            "c_move": two["exchange_s"] / half,  # at N = 2: (N - 1) / N of the input moves
+            "c_part": max(drawn - c_pix * pix, 0.0) / half,
+            "c_pix": c_pix,
+            "c_comp": max(two["composite_s"] - 2 * c_msg, 0.0) / pix,
+            "c_msg": c_msg,
+            "bytes_per_particle": (max(two["peak_rss_bytes"]) - max(base_two["peak_rss_bytes"]))
+            / half,
+            "base_bytes": max(base_two["peak_rss_bytes"])}
+
+
+def predict(c: dict, n: float, ranks: int, pix: int) -> dict:
+    """Per-step phases on `ranks` ranks of n particles at pix pixels: receive and drawing
+    divide by the rank count, the exchange moves (N - 1) / N of each rank's share (as in a
+    random order; scaled from N = 2), messages grow as N - 1 per collective, and the
+    per-pixel work stays on every rank (conservative: a brick covers less of the image the
+    more ranks there are, which the sparse composite would turn into fewer bytes)."""
+    share = n / ranks
+    moved = (ranks - 1) / ranks / 0.5
+    parts = {"receive_s": c["c_recv"] * share,
+             "exchange_s": c["c_move"] * share * moved + c["c_msg"] * (ranks - 1)
+             if ranks > 1 else 0.0,
+             "render_s": c["c_part"] * share + c["c_pix"] * pix,
+             "composite_s": c["c_comp"] * pix + 2 * c["c_msg"] * (ranks - 1) if ranks > 1
+             else 0.0}
+    return {**{k: round(v, 4) for k, v in parts.items()},
+            "total_s": round(sum(parts.values()), 4),
+            "peak_rss_bytes_per_rank": int(c["base_bytes"] + c["bytes_per_particle"] * share)}
+
+
+def model(two: dict, big_two: dict, base_two: dict) -> list[dict]:
+    """The step's time per step for N = 1 .. 64 ranks at the smaller image size."""
+    c = costs(two, big_two, base_two)
+    return [{"bench": "render_mpi_model", "particles": two["particles"], "width": two["width"],
+             "height": two["height"], "ranks": ranks,
+             **predict(c, two["particles"], ranks, two["width"] * two["height"])}
+            for ranks in MODEL_RANKS]
+
+
+def large_run(two: dict, big_two: dict, base_two: dict, n: int = LARGE_RUN) -> dict:
+    """What n particles would need at the smaller image size, from one step's costs: the
+    fewest ranks (a power of two) whose peak RSS fits MEMORY_PER_RANK and whose step takes at
+    most STEP_S; the fastest rank count if none does."""
+    c = costs(two, big_two, base_two)
+    pix = two["width"] * two["height"]
+    options = [(ranks, predict(c, n, ranks, pix)) for ranks in (2 ** k for k in range(13))]
+    fits = [(r, p) for r, p in options if p["peak_rss_bytes_per_rank"] <= MEMORY_PER_RANK]
+    fits = fits or options
+    good = [(r, p) for r, p in fits if p["total_s"] <= STEP_S]
+    ranks, p = good[0] if good else min(fits, key=lambda rp: rp[1]["total_s"])
+    return {"bench": "render_mpi_large", "particles": n, "width": two["width"],
+            "height": two["height"], "ranks": ranks, **p,
+            "pixel_floor_s": round((c["c_pix"] + c["c_comp"]) * pix, 4),
+            "costs_from": f"{two['particles']} particles", "memory_per_rank_limit": MEMORY_PER_RANK,
+            "step_s_limit": STEP_S}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -253,26 +310,33 @@ def main(argv: list[str] | None = None) -> None:
             MPI.COMM_WORLD.Abort(1)
         return
     print(json.dumps(shadow_needs()), flush=True)
-    for line in launch("baseline", 0, 1, 2):
-        print(json.dumps(line), flush=True)
+    base = {}
+    for ranks, threads in ((1, 2), (2, 1)):  # also compiles every kernel before the runs
+        base[ranks] = launch("baseline", 0, ranks, threads)[0]
+        print(json.dumps(base[ranks]), flush=True)
     steps = [("column", 0)] + ([("random", args.large)] if args.large else [])
+    w0, w1 = SIZES[0][0], SIZES[1][0]
+    rows = {}
     for kind, n in steps:
-        rows = {}
         for ranks, threads in ((1, 2), (2, 1)):
             for line in launch(kind, n, ranks, threads):
-                rows[ranks, line["width"]] = line
+                rows[kind, ranks, line["width"]] = line
                 print(json.dumps(line), flush=True)
         for width, _ in SIZES:
-            one, two = rows[1, width], rows[2, width]
+            one, two = rows[kind, 1, width], rows[kind, 2, width]
+            above = ((max(two["peak_rss_bytes"]) - max(base[2]["peak_rss_bytes"]))
+                     / max(one["peak_rss_bytes"][0] - base[1]["peak_rss_bytes"][0], 1))
             ratio = {"bench": "render_mpi_ratio", "particles": one["particles"], "width": width,
                      "total_2_over_1": round(two["total_s"] / one["total_s"], 3),
                      "composite_share_2": round(two["composite_s"] / two["total_s"], 3),
                      "rss_2_over_1": round(max(two["peak_rss_bytes"])
-                                           / one["peak_rss_bytes"][0], 3)}
+                                           / one["peak_rss_bytes"][0], 3),
+                     "rss_above_baseline_2_over_1": round(above, 3)}
             print(json.dumps(ratio), flush=True)
-        w0, w1 = SIZES[0][0], SIZES[1][0]
-        for line in model(rows[1, w0], rows[2, w0], rows[1, w1], rows[2, w1]):
+        for line in model(rows[kind, 2, w0], rows[kind, 2, w1], base[2]):
             print(json.dumps(line), flush=True)
+    kind = "random" if args.large else "column"  # the larger step's costs
+    print(json.dumps(large_run(rows[kind, 2, w0], rows[kind, 2, w1], base[2])), flush=True)
 
 
 if __name__ == "__main__":

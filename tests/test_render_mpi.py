@@ -116,8 +116,47 @@ def worker(out: Path, scale: int) -> None:
             np.savez(out / f"{name}.npz", **{f.view.name: f.image for f in frames})
             meta[name] = {"counts": times.counts,
                           "particles": {f.view.name: f.particles for f in frames}}
+    meta["exchange"] = exchange_checks(comm)
     if comm.rank == 0:
         (out / "meta.json").write_text(json.dumps(meta))
+
+
+def exchange_checks(comm) -> dict:
+    """Under mpiexec: balanced slabs in rank order stay where they are (the input arrays
+    themselves); scattered rows moved in many small rounds equal one round, every particle
+    ends on the rank of its brick, each exactly once."""
+    from minority.render_server import distribute
+
+    rng = np.random.default_rng(11 + comm.rank)
+    n = 3000
+    x = (comm.rank + rng.random(n)) / comm.size  # rank r: x in [r/N, (r+1)/N); z longest
+    slab = np.c_[x, 0.1 * rng.random(n), 2.0 * rng.random(n)].astype(np.float32)
+    values = rng.random(n).astype(np.float32)
+    part = distribute.exchange(comm, slab, {"v": values})
+    checks = {"slabs_in_place": part.positions is slab and part.fields["v"] is values,
+              "slab_axis": int(part.tree.axis[0])}
+    mixed = rng.random((n, 3)).astype(np.float32)
+    fields = {"v": values, "pair": rng.random((n, 2)), "flag": rng.integers(0, 100, n, np.int8)}
+    one = distribute.exchange(comm, mixed, fields, pool=distribute.Pool())
+    saved, distribute.ROUND_BYTES = distribute.ROUND_BYTES, 256  # a round: a few rows a rank
+    try:
+        many = distribute.exchange(comm, mixed, fields)
+    finally:
+        distribute.ROUND_BYTES = saved
+    checks["rounds_equal"] = bool(np.array_equal(one.positions, many.positions)
+                                  and np.array_equal(one.keys, many.keys)
+                                  and all(np.array_equal(one.fields[k], many.fields[k])
+                                          for k in fields))
+    owner = distribute.classify(many.positions, many.keys, many.tree)
+    checks["on_own_brick"] = bool(np.all(owner == comm.rank))
+    every = np.sort(np.concatenate(comm.allgather(many.keys)))
+    checks["each_once"] = bool(np.array_equal(every, np.arange(n * comm.size)))
+    # the fields travelled with their particles: rows of the input, by key
+    rows = many.keys - n * comm.rank  # this rank's rows where the key is its own
+    mine = (rows >= 0) & (rows < n)
+    checks["rows_intact"] = bool(np.array_equal(many.fields["flag"][mine], fields["flag"][rows[mine]])
+                                 and np.array_equal(many.positions[mine], mixed[rows[mine]]))
+    return checks
 
 
 def run_ranks(ranks: int, out: Path, scale: int = 1) -> dict:
@@ -159,6 +198,12 @@ def test_bricks_are_balanced(distributed):
         assert np.abs(counts - total / ranks).max() <= 0.03 * total / ranks, (name, counts)
 
 
+def test_exchange_keeps_slabs_and_moves_rows_in_rounds(distributed):
+    ranks, _, meta = distributed
+    assert meta["exchange"] == {"slabs_in_place": True, "slab_axis": 0, "rounds_equal": True,
+                                "on_own_brick": True, "each_once": True, "rows_intact": True}
+
+
 def test_ties_decide_pixels():
     """The heap's duplicated particles tie at equal depth with other colours: the frame
     depends on how ties break, so the pixel identity above checks the tie rule."""
@@ -195,6 +240,50 @@ def test_tree_splits_counts_for_any_rank_count():
     tree = build_tree(g, np.arange(len(g), dtype=np.int64), 3, g.min(0), g.max(0))
     counts = np.bincount(classify(g, np.arange(len(g), dtype=np.int64), tree), minlength=3)
     assert counts.tolist() == [576, 576, 576]
+
+
+def test_slab_tree_keeps_ordered_balanced_slabs_only():
+    from minority.render_server.distribute import classify, slab_tree
+
+    # 3 ranks along y; rank 1's last particle and rank 2's first share a coordinate
+    coord = np.zeros((3, 3, 2))
+    key = np.zeros((3, 3, 2), np.int64)
+    coord[:, 0] = [[0.0, 1.0]] * 3  # x overlaps: not slabs along x
+    coord[:, 2] = [[0.0, 1.0]] * 3
+    coord[:, 1] = [[0.0, 0.3], [0.31, 0.6], [0.6, 0.9]]
+    key[:, 1] = [[0, 9], [3, 7], [8, 2]]  # on y = 0.6, rank 1's key 7 comes before rank 2's 8
+    lo, hi = np.zeros(3), np.ones(3)
+    tree = slab_tree(coord, key, np.array([100, 100, 100]), lo, hi)
+    assert tree is not None and tree.axis[0] == 1
+    pts = np.array([[0.5, 0.6, 0.5], [0.5, 0.6, 0.5], [0.5, 0.3, 0.5]])
+    assert classify(pts, np.array([7, 8, 9], np.int64), tree).tolist() == [1, 2, 0]
+    assert slab_tree(coord, key, np.array([100, 100, 120]), lo, hi) is None  # unbalanced
+    key[2, 1, 0] = 6  # rank 2's first now comes before rank 1's last: overlapping
+    assert slab_tree(coord, key, np.array([100, 100, 100]), lo, hi) is None
+
+
+def test_tree_splits_along_the_axis_that_keeps_particles_in_place():
+    rng = np.random.default_rng(5)
+    sample = rng.random((8000, 3)) * [1.0, 0.2, 2.0]  # z longest
+    keys = np.arange(len(sample), dtype=np.int64)
+    lo, hi = sample.min(0), sample.max(0)
+    assert build_tree(sample, keys, 2, lo, hi).axis[0] == 2
+    sources = (sample[:, 0] > 0.5).astype(np.int64)  # rank 0 holds x < 0.5, rank 1 the rest
+    tree = build_tree(sample, keys, 2, lo, hi, sources)
+    assert tree.axis[0] == 0 and abs(tree.plane[0] - 0.5) < 0.02
+    mixed = rng.integers(0, 2, len(sample))  # random holders: no axis keeps more
+    assert build_tree(sample, keys, 2, lo, hi, mixed).axis[0] == 2
+
+
+def test_pool_reuses_its_buffers():
+    from minority.render_server.distribute import Pool
+
+    pool = Pool()
+    a = pool.get("x", (100, 3), np.float32)
+    b = pool.get("x", (80, 3), np.float32)  # smaller: the same memory
+    assert a.shape == (100, 3) and b.shape == (80, 3) and np.shares_memory(a, b)
+    c = pool.get("x", (1000, 3), np.float32)  # larger: a new buffer
+    assert not np.shares_memory(a, c) and pool.nbytes >= c.nbytes
 
 
 def test_composite_keeps_the_nearest_then_the_lowest_key():

@@ -528,6 +528,7 @@ class Follower:
         self.updates: list[Update] = []
         self.frames = 0  # rendered so far (the server's Timing messages)
         self._plan_wall = PLAN_WALL_S  # the last re-forecast's planning wall time, s
+        self._planned: tuple = (None, None, 0)  # the last plan(): (from_s, rate, frames left)
         self._q: queue.Queue = queue.Queue(QUEUE_MESSAGES)
         self.dropped = 0  # messages dropped on a full queue
         self._subs = [session.declare_subscriber(k, self._on(kind)) for k, kind in (

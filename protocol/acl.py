@@ -10,6 +10,8 @@ rules are generated here, per run, from protocol.keys:
     minority-server.R   serve the spec (queryable) and put spec updates, frames, timing and
                         events; read everything of the run
     minority-viewer.R   read everything of the run, get the spec
+    minority-oracle.R   read everything of the run, get the spec and put spec updates (the
+                        oracle that follows the run: minority oracle follow)
 
 and, for every run of the list at once, the role-wide identities `minority-server` and
 `minority-viewer` (`shared`) and any session over the loopback interface (`loopback_readers`:
@@ -30,8 +32,8 @@ from collections.abc import Iterable, Sequence
 
 from minority.protocol import check, keys
 
-RANK, SERVER, VIEWER = "rank", "server", "viewer"
-ROLES = (RANK, SERVER, VIEWER)
+RANK, SERVER, VIEWER, ORACLE = "rank", "server", "viewer", "oracle"
+ROLES = (RANK, SERVER, VIEWER, ORACLE)
 SHARED_DEFAULT = (SERVER, VIEWER)  # role-wide identities: the server and viewers of every run
 LOOPBACK_INTERFACE = "lo"  # Linux; the subject "local" of deploy/zenoh/router.json5
 
@@ -48,6 +50,7 @@ _RULES = {
     "server-put": (["put"], ["ingress"],
                    lambda r: [keys.spec(r), keys.frames(r), keys.timing(r), keys.event(r)]),
     "server-spec": (["declare_queryable", "reply"], ["ingress"], lambda r: [keys.spec(r)]),
+    "oracle-put": (["put"], ["ingress"], lambda r: [keys.spec(r)]),  # spec updates
     "server-queries-in": (["query"], ["egress"], lambda r: [keys.spec(r)]),
     "read": (["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
              ["ingress"], lambda r: [keys.everything(r)]),
@@ -58,6 +61,7 @@ _ROLE_RULES = {
     SERVER: ("server-put", "server-spec", "server-queries-in", "read", "read-out", "spec-read",
              "spec-read-out", "see-readers"),
     VIEWER: ("read", "read-out", "spec-read", "spec-read-out", "see-readers"),
+    ORACLE: ("oracle-put", "read", "read-out", "spec-read", "spec-read-out", "see-readers"),
 }
 
 

@@ -95,11 +95,17 @@ def test_every_rule_names_one_listed_run():
     assert {r.split(".", 1)[1] for r in policies["local"]["rules"]} == {A, B}
     assert f"server-put.{A}" in policies["server"]["rules"]
     assert f"server-put.{A}" not in policies["viewer"]["rules"]
+    # the oracle of a run: the spec updates of that run and a viewer's reading, no chunks
+    oracle = set(policies[f"oracle.{A}"]["rules"])
+    assert oracle == {f"{r}.{A}" for r in ("oracle-put", "read", "read-out", "spec-read",
+                                           "spec-read-out", "see-readers")}
+    assert rules[f"oracle-put.{A}"]["key_exprs"] == [f"minority/{A}/spec"]
 
 
 def test_options_drop_shared_identities_loopback_and_usernames():
     acl = router_access_control([A], shared=(), loopback_readers=False, usernames=False)
-    assert {p["id"] for p in acl["policies"]} == {f"rank.{A}", f"server.{A}", f"viewer.{A}"}
+    assert {p["id"] for p in acl["policies"]} == {f"rank.{A}", f"server.{A}", f"viewer.{A}",
+                                                  f"oracle.{A}"}
     assert all(set(s) == {"id", "cert_common_names"} for s in acl["subjects"])
 
 
@@ -185,7 +191,7 @@ def test_cli_hooks_into_a_subparsers_object():
 def certs(tmp_path_factory) -> Path:
     """make-certs.sh's CA and role-wide certificates, then run certificates of A and B."""
     out = make_certs(tmp_path_factory)
-    for args in ([A, "rank", "viewer"], [B]):  # B: the default role, rank
+    for args in ([A, "rank", "viewer", "oracle"], [B]):  # B: the default role, rank
         subprocess.run(["bash", str(MAKE_RUN_CERTS), str(out), *args], check=True,
                        capture_output=True, timeout=60)
     return out
@@ -200,7 +206,7 @@ def common_name(path: Path) -> str:
 
 
 def test_make_run_certs(certs):
-    for role, run in (("rank", A), ("viewer", A), ("rank", B)):
+    for role, run in (("rank", A), ("viewer", A), ("oracle", A), ("rank", B)):
         crt, key = certs / f"{role}.{run}.crt", certs / f"{role}.{run}.key"
         assert common_name(crt) == identity(role, run)
         assert stat.S_IMODE(key.stat().st_mode) == 0o600
@@ -554,3 +560,25 @@ def test_slurm_script_issues_the_runs_certificate_and_rules(tmp_path):
     finally:
         for session in reversed(sessions):
             session.close()
+
+
+def test_oracle_of_a_updates_a_spec_only(two_runs, tmp_path):
+    """The follower's identity: its spec update of A reaches the server and A's rank; its
+    update of B (put just before one of A, in order over one link) and a viewer's update of
+    A (then a round trip) do not."""
+    d = two_runs
+    oracle = d.open(local_copy("oracle.json5", d.certs, tmp_path, A))
+    watch = Counting()
+    for run in (A, B):
+        d.server.declare_subscriber(keys.spec(run), watch)
+    put_until_seen(oracle, keys.spec(A), watch)
+    denied_then_allowed(oracle, keys.spec(B), keys.spec(A), watch)
+    assert keys.spec(B) not in watch.keys
+    seen = watch.keys.count(keys.spec(A))
+    d.viewer_a.put(keys.spec(A), b"forged", congestion_control=zenoh.CongestionControl.BLOCK)
+    spec_replies(d.viewer_a, A)  # a round trip after the put
+    oracle.put(keys.spec(A), b"update", congestion_control=zenoh.CongestionControl.BLOCK)
+    assert watch.wait_count(keys.spec(A), seen + 1)
+    assert watch.keys.count(keys.spec(A)) == seen + 1  # a forged one would have come first
+    assert d.rank_a_seen.wait_for(keys.spec(A))  # the rank of A follows the update
+    assert spec_replies(oracle, A) == [f"spec {A}".encode()]  # it gets the spec too

@@ -10,17 +10,17 @@
 # OUT_DIR   where ca.crt and ca.key are, and where to write (e.g. deploy/tls)
 # RUN       the run id, as in minority/RUN/... (1-64 characters of A-Z a-z 0-9 _ . -, not
 #           starting with . or -)
-# ROLE      rank (default), server, viewer; one certificate each:
+# ROLE      rank (default), server, viewer, oracle; one certificate each:
 #             ROLE.RUN.crt ROLE.RUN.key    CN minority-ROLE.RUN, e.g. rank.column.crt with
 #                                          CN minority-rank.column
 # Keys are PKCS#8 PEM (P-256), mode 600; certificates valid DAYS days (default 365). Running
-# it again renews them. Point a copy of deploy/zenoh/rank.json5 (server.json5, viewer.json5)
+# it again renews them. Point a copy of deploy/zenoh/rank.json5 (server, viewer, oracle.json5)
 # at them, e.g.
 #   sed 's#deploy/tls/rank\.#deploy/tls/rank.column.#' deploy/zenoh/rank.json5 > rank-column.json5
 set -euo pipefail
 
 if [ "$#" -lt 2 ]; then
-    echo "usage: $0 OUT_DIR RUN [rank|server|viewer ...]" >&2
+    echo "usage: $0 OUT_DIR RUN [rank|server|viewer|oracle ...]" >&2
     exit 2
 fi
 out="$1"
@@ -37,8 +37,8 @@ if ! [[ "$run" =~ ^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$ ]]; then
 fi
 for role in "${roles[@]}"; do
     case "$role" in
-        rank|server|viewer) ;;
-        *) echo "make-run-certs.sh: ROLE must be rank, server or viewer, not '$role'" >&2; exit 2 ;;
+        rank|server|viewer|oracle) ;;
+        *) echo "make-run-certs.sh: ROLE must be rank, server, viewer or oracle, not '$role'" >&2; exit 2 ;;
     esac
 done
 command -v openssl >/dev/null || { echo "make-run-certs.sh: openssl not found" >&2; exit 1; }

@@ -49,6 +49,25 @@ def server(endpoint):
 
 
 @pytest.fixture
+def render_server_of(server, tmp_path):
+    """A function spec -> a RenderServer on the `server` session, frames under
+    tmp_path/frames and its log tmp_path/run.mcap, 30 s step timeout; closed at teardown."""
+    from minority.render_server.daemon import RenderServer, ServerOptions
+
+    started = []
+
+    def start(spec):
+        d = RenderServer(server, ServerOptions(spec, tmp_path / "frames", tmp_path / "run.mcap",
+                                               timeout_s=30.0))
+        started.append(d)
+        return d
+
+    yield start
+    for d in started:
+        d.close()
+
+
+@pytest.fixture
 def client_factory(server, endpoint):
     sessions = []
 

@@ -47,11 +47,8 @@ def spec() -> Spec:
 
 
 @pytest.fixture
-def daemon(server, tmp_path):
-    d = RenderServer(server, ServerOptions(spec(), tmp_path / "frames", tmp_path / "run.mcap",
-                                           timeout_s=30.0))
-    yield d
-    d.close()
+def daemon(render_server_of):
+    return render_server_of(spec())
 
 
 def send_step(session, step, ranks=2, n=50, **kw):

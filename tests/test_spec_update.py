@@ -11,7 +11,6 @@ from minority.insitu import connect
 from minority.protocol import Spec, decode_as, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
-from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import wait_until
 from test_render_daemon import RUN, spec
 
@@ -24,11 +23,8 @@ def updated(every_steps: int, reason: str) -> Spec:
 
 
 @pytest.fixture
-def daemon(server, tmp_path):
-    d = RenderServer(server, ServerOptions(spec(), tmp_path / "frames", tmp_path / "run.mcap",
-                                           timeout_s=30.0))
-    yield d
-    d.close()
+def daemon(render_server_of):
+    return render_server_of(spec())
 
 
 def test_the_server_and_a_rank_follow_a_spec_put_by_another_peer(daemon, client_factory,

@@ -74,23 +74,22 @@ def _pack(rgb, depth, key, starts, offsets, skip, out):
 def _merge_records(rgb, depth, key, start, records, band_rgb, band_hit):
     """Merge records [k, 3] into this rank's band (band_rgb [m, 3] uint8, band_hit [m] bool),
     which starts as this rank's own layer (rgb [h * w, 3], depth and key [h * w] from pixel
-    `start`): a record replaces the pixel if its depth is nearer, or equal with a lower key."""
+    `start`): a record replaces the pixel if its depth is nearer, or equal with a lower key.
+    The band's depth and key are merged in place, in depth and key."""
     m = band_rgb.shape[0]
-    best_depth = depth[start:start + m].copy()
-    best_key = key[start:start + m].copy()
     band_rgb[:] = rgb[start:start + m]
     for r in range(records.shape[0]):
-        q = np.int64(records[r, 0] >> np.uint64(24))
+        q = start + np.int64(records[r, 0] >> np.uint64(24))
         d = records[r, 1:2].view(np.float64)[0]
         k = np.int64(records[r, 2])
-        if d < best_depth[q] or (d == best_depth[q] and k < best_key[q]):
-            best_depth[q], best_key[q] = d, k
+        if d < depth[q] or (d == depth[q] and k < key[q]):
+            depth[q], key[q] = d, k
             colour = records[r, 0]
-            band_rgb[q, 0] = np.uint8((colour >> np.uint64(16)) & np.uint64(255))
-            band_rgb[q, 1] = np.uint8((colour >> np.uint64(8)) & np.uint64(255))
-            band_rgb[q, 2] = np.uint8(colour & np.uint64(255))
+            band_rgb[q - start, 0] = np.uint8((colour >> np.uint64(16)) & np.uint64(255))
+            band_rgb[q - start, 1] = np.uint8((colour >> np.uint64(8)) & np.uint64(255))
+            band_rgb[q - start, 2] = np.uint8(colour & np.uint64(255))
     for q in range(m):
-        band_hit[q] = best_depth[q] < np.inf
+        band_hit[q] = depth[start + q] < np.inf
 
 
 def _row_type(row_bytes: int):
@@ -116,7 +115,8 @@ def composite(comm, rgb: np.ndarray, depth: np.ndarray, key: np.ndarray, root: i
     """Composite every rank's layer (collective): rgb [h, w, 3] uint8, depth [h * w] float64
     (inf where nothing is hit), key [h * w] int64 of each pixel's particle. Returns on `root`
     the frame [h, w, 3] uint8 and hit [h * w] bool (a particle covers the pixel); None on
-    the other ranks."""
+    the other ranks. This rank's band of depth and key is overwritten with the merged one
+    (when they are C-contiguous; otherwise copies are merged)."""
     from mpi4py import MPI
 
     h, w = rgb.shape[:2]

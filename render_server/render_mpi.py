@@ -183,7 +183,7 @@ def render_views_distributed(comm, step: StepLike, spec: Spec, canvases: dict[st
                 comm.Barrier()  # waiting for the slowest rank's layer counts as rendering
             t2 = time.perf_counter()
             times.render_s += t2 - t1
-            image, hit = composite(comm, *layer) or (None, None)
+            image, hit = composite(comm, *layer, pool=layers.pool) or (None, None)
             times.composite_s += time.perf_counter() - t2
         if comm.rank != 0:
             continue
@@ -234,7 +234,7 @@ def render_step_distributed(comm, positions: np.ndarray, fields: dict[str, np.nd
         if comm.size > 1:
             comm.Barrier()  # waiting for the slowest rank's layer counts as rendering
         t3 = time.perf_counter()
-        done = composite(comm, *layer)
+        done = composite(comm, *layer, pool=layers.pool)
         times.render_s += t3 - t2
         times.composite_s += time.perf_counter() - t3
         if done is not None:

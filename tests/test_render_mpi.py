@@ -287,16 +287,31 @@ def test_pool_reuses_its_buffers():
 
 
 def test_composite_keeps_the_nearest_then_the_lowest_key():
-    from minority.render_server.composite import _merge
+    """Three ranks' layers of 4 pixels: rank 0's own, ranks 1 and 2 packed as the records
+    they send; the merge keeps the nearest depth, then the lowest key, in any record order."""
+    from minority.render_server.composite import _count_hits, _merge_records, _pack
 
     rgb = np.array([[[10, 0, 0]] * 4, [[20, 0, 0]] * 4, [[30, 0, 0]] * 4], np.uint8)  # [3, 4, 3]
     depth = np.array([[1.0, 2.0, np.inf, 5.0], [1.0, 1.0, np.inf, 5.0],
                       [0.5, 2.0, np.inf, 5.0]])
     key = np.array([[7, 1, 9, 4], [3, 8, 9, 2], [9, 0, 9, 6]], np.int64)
-    out, hit = np.empty((4, 3), np.uint8), np.empty(4, np.bool_)
-    _merge(rgb, depth, key, out, hit)
-    assert out[:, 0].tolist() == [30, 20, 10, 20]  # nearest; nearest; background; lowest key
-    assert hit.tolist() == [True, True, False, True]
+    starts = np.array([0, 4], np.int64)  # one band: all 4 pixels
+    packed = []
+    for s in (1, 2):
+        count = np.empty(1, np.int64)
+        _count_hits(depth[s], starts, count)
+        records = np.empty((int(count[0]), 3), np.uint64)
+        _pack(rgb[s], depth[s], key[s], starts, np.zeros(1, np.int64), -1, records)
+        packed.append(records)
+    records = np.concatenate(packed)
+    assert len(records) == 6  # pixel 2 is hit nowhere: never sent
+    for order in (records, records[::-1].copy()):
+        band_rgb, band_hit = np.empty((4, 3), np.uint8), np.empty(4, np.bool_)
+        d, k = depth[0].copy(), key[0].copy()
+        _merge_records(rgb[0], d, k, 0, order, order.view(np.float64), band_rgb, band_hit)
+        assert band_rgb[:, 0].tolist() == [30, 20, 10, 20]  # nearest; nearest; own; lowest key
+        assert band_hit.tolist() == [True, True, False, True]
+        assert d[:2].tolist() == [0.5, 1.0] and k.tolist() == [9, 8, 9, 2]
 
 
 def test_composite_on_one_rank_and_bands():

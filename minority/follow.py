@@ -316,10 +316,11 @@ def coarse_history(snaps: list[Snapshot], spacing_m: float) -> tuple[np.ndarray,
 
 
 def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
-                 frames: int, peak_ke: float, chunk: int = 20) -> np.ndarray:
+                 frames: int, peak_ke: float, chunk: int = 20, check=None) -> np.ndarray:
     """[C+1+frames, m, 3] (m): the rollout from history [C+1, m, 3], chunk frames at a time,
     stopped once its mean |v|^2 has stayed below REST_FRACTION of max(peak_ke, its own peak)
-    for a chunk (the rest filled with its last frame: at rest)."""
+    for a chunk (the rest filled with its last frame: at rest). check(): called between
+    chunks, raises to abandon the rollout (the run ended or departed again meanwhile)."""
     from minority.gns.rollout import rollout
 
     c1 = history.shape[0]
@@ -336,6 +337,8 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
         peak = max(peak, float(ke.max()))
         if done >= 2 * chunk and ke[-5:].mean() < REST_FRACTION * peak:
             break
+        if check is not None and done < frames:
+            check()
     out = np.concatenate(traj)
     if done < frames:
         out = np.concatenate([out, np.repeat(out[-1:], frames - done, axis=0)])
@@ -435,8 +438,16 @@ class TooLate(ValueError):
     """The re-forecast would be adopted after the run's end."""
 
 
+class Superseded(Exception):
+    """The run departed again while the GNS rolled: the re-forecast is stale."""
+
+    def __init__(self, departure: Departure):
+        super().__init__(departure.reason)
+        self.departure = departure
+
+
 def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snapshot],
-               scene: Scene, plan) -> tuple[Spec, dict]:
+               scene: Scene, plan, check=None) -> tuple[Spec, dict]:
     """The spec of the rest of the run from the snapshots ([C + 1] one model frame apart):
     coarse-grain, roll the GNS to rest, then ask plan() -> (from_s, frames): when the spec
     will be adopted (s of the run's time) and how many frames it may plan; join the events
@@ -444,7 +455,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     forecast has the flow at rest by then or the budget is spent: the spec in force ended
     at from_s, with the forecast's events). stats: the checkpoint's
     (particle_spacing_m, frame_interval_s). Returns the spec (snapshots cleared) and what
-    its provenance records; TooLate when from_s is past the run's last model frame."""
+    its provenance records; TooLate when from_s is past the run's last model frame.
+    check: see roll_to_rest."""
     t_start = time.perf_counter()
     dt, spacing = float(stats["frame_interval_s"]), float(stats["particle_spacing_m"])
     history, x0 = coarse_history(snaps, spacing)
@@ -453,7 +465,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     frames = max(1, round((scene.duration_s - t0) / dt) - (c1 - 1))
     peak_ke = max(flow.ke) if flow.ke else 0.0
     traj = roll_to_rest(model, history, scene.friction_deg, scene.bounds_m, frames,
-                        peak_ke * dt * dt)  # the run's peak mean |v|^2, as (m per frame)^2
+                        peak_ke * dt * dt,  # the run's peak mean |v|^2, as (m per frame)^2
+                        check=check)
     t_plan = time.perf_counter()
     from_s, frames_left = plan()  # the run has moved on while the GNS rolled
     if from_s > scene.duration_s - dt:
@@ -513,8 +526,9 @@ class Follower:
 
     def __init__(self, session, run: str, model, stats: dict, scene: Scene,
                  options: FollowOptions | None = None, log=None, forecast=reforecast):
-        """forecast: (model, stats, spec, flow, snapshots, scene, plan) -> (Spec, info),
-        reforecast unless a test stubs it (plan() -> (from_s, frames): see reforecast)."""
+        """forecast: (model, stats, spec, flow, snapshots, scene, plan, check) -> (Spec,
+        info), reforecast unless a test stubs it (plan() -> (from_s, frames), check(): see
+        reforecast)."""
         from minority.protocol import keys
 
         self.session, self.run_id, self.model, self.stats = session, run, model, stats
@@ -689,13 +703,32 @@ class Follower:
         self._planned = (from_s, rate, left)
         return from_s, left - (round(RESERVE_SHARE * left) if more else 0)
 
+    def check_rollout(self) -> None:
+        """Between a re-forecast's rollout chunks: catch up with the run; TooLate once it
+        reached its end, Superseded when it left the spec in force again (a slow rollout,
+        as of a large scene, must not blind the follower until the run ends)."""
+        if self._catch_up():
+            d = self.detector.check(self.spec, self.flow)
+            if d is not None:
+                raise Superseded(d)
+        end = self.scene.duration_s - float(self.stats["frame_interval_s"])
+        if self.flow.now_s >= end:
+            raise TooLate(f"the run reached {self.flow.now_s:.3f} s while the GNS rolled")
+
     def _forecast(self, snaps: list[Snapshot]) -> None:
         d = self._pending
         t0 = time.perf_counter()
         self._planned = (None, None, self.budget_total - self.frames)
         try:
             spec, info = self.forecast(self.model, self.stats, self.spec, self.flow, snaps,
-                                       self.scene, self.plan)
+                                       self.scene, self.plan, self.check_rollout)
+        except Superseded as exc:  # the new departure's own shift and snapshots instead
+            print(f"oracle follow: the re-forecast was abandoned after "
+                  f"{time.perf_counter() - t0:.1f} s: the run departed again ({exc})",
+                  file=self.log, flush=True)
+            self._pending = exc.departure
+            self._request_snapshots(exc.departure)
+            return
         except Exception as exc:  # noqa: BLE001 - a failed forecast leaves the spec in force
             print(f"oracle follow: the re-forecast failed: {exc!r}", file=self.log, flush=True)
             return

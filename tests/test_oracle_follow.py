@@ -168,9 +168,15 @@ def test_the_progress_rate_is_simulated_over_wall_time_of_the_latest_stats():
     assert flow.rate() == pytest.approx(0.005 / 0.25)
 
 
-class _Session:  # what a Follower declares on, no network
+class _Session:  # what a Follower declares on and puts to, no network
+    def __init__(self):
+        self.puts = []
+
     def declare_subscriber(self, key, handler):
         return type("Sub", (), {"undeclare": lambda self: None})()
+
+    def put(self, key, payload, **qos):
+        self.puts.append((key, bytes(payload)))
 
 
 def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates():
@@ -251,7 +257,7 @@ def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
     x0 = lattice(4, 0.01) + [0.3, 0.3, 0.0]  # 64 particles, 8 groups at the model's 0.02 m
     got: dict = {}
 
-    def stub(model, stats, old, flow, snaps, scene, plan):
+    def stub(model, stats, old, flow, snaps, scene, plan, check):
         from_s, frames = plan()
         got.update(snaps=snaps, frames=frames, from_s=from_s, now_s=flow.now_s)
         new = shifted(old, 0.0, {}, snapshots=[])
@@ -417,3 +423,34 @@ def test_without_future_ends_every_window_at_the_adoption():
     assert d["views"][0]["schedule"][0]["t_end_s"] == 0.25 and not d.get("snapshots")
     gone = without_future(spec(), 0.1)["views"][0]["schedule"]  # the window starts later
     assert [(w["t_start_s"], w["t_end_s"]) for w in gone] == [(0.0, 0.0)]
+
+
+def test_a_departure_while_the_gns_rolls_abandons_the_stale_forecast():
+    """Stats queued while the forecast runs are read between its rollout chunks: an early
+    onset there abandons it for the new departure's shift and snapshots."""
+    stats = {"frame_interval_s": FRAME_S, "particle_spacing_m": 0.02}
+    rolled = []
+
+    def slow(model, stats_, old, flow, snaps, scene, plan, check):
+        for chunk in range(5):  # what roll_to_rest does between its chunks
+            rolled.append(chunk)
+            check()
+        raise AssertionError("the departure was not seen")
+
+    session = _Session()
+    f = Follower(session, RUN, None, stats, Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
+                 FollowOptions(ranks=2), log=io.StringIO(), forecast=slow)
+    f._adopt(spec())
+    run = collapse(0.1, 0.5)  # the onset predicted at 0.2 s comes at 0.1 s
+    for step in range(0, 131, 5):
+        for rank in range(2):
+            f._q.put(("stats", stats_at(step, np.full(100, run(step * DT)), rank=rank).encode(),
+                      10.0 + step * 0.01))
+    f._pending = None
+    f._forecast([])
+    assert rolled == [0]  # abandoned at the first chunk's end
+    assert f.flow.now_s == pytest.approx(0.13)  # caught up
+    shift = f.updates[-1]
+    assert shift.kind == "shift" and shift.detail["event"] == "failure_onset"
+    assert f._wanted and f._wanted[0] > 0.13 and session.puts
+    assert "abandoned" in f.log.getvalue()

@@ -30,8 +30,9 @@ render; per pixel of render and composite; per message; bytes per particle), one
 rank, messages at the measured shared-memory cost:
 t(N) = c_recv n/N + c_move n/N 2(N-1)/N + c_msg (N-1) + c_part n/N + c_pix P + c_comp P
 + 2 c_msg (N-1), peak RSS per rank = baseline + bytes_per_particle n/N.
-"render_mpi_large": what a LARGE_RUN-particle run would need on that model (from the random
-step's costs): ranks, peak RSS per rank, time per step at 1024x768.
+"render_mpi_large": what a LARGE_RUN-particle run would need on that model (per-particle
+costs and bytes of the random step, the larger per-pixel costs of the two steps): ranks,
+peak RSS per rank, time per step at 1024x768.
 """
 
 from __future__ import annotations
@@ -266,11 +267,16 @@ def model(two: dict, big_two: dict, base_two: dict) -> list[dict]:
             for ranks in MODEL_RANKS]
 
 
-def large_run(two: dict, big_two: dict, base_two: dict, n: int = LARGE_RUN) -> dict:
-    """What n particles would need at the smaller image size, from one step's costs: the
-    fewest ranks (a power of two) whose peak RSS fits MEMORY_PER_RANK and whose step takes at
-    most STEP_S; the fastest rank count if none does."""
-    c = costs(two, big_two, base_two)
+def large_run(steps: list[tuple[dict, dict]], base_two: dict, n: int = LARGE_RUN) -> dict:
+    """What n particles would need at the smaller image size: the per-particle costs and
+    bytes of the last step (N = 2 runs at two sizes each), the largest per-pixel costs of
+    any step (a step dominated by particles hides them); the fewest ranks (a power of two)
+    whose peak RSS fits MEMORY_PER_RANK and whose step takes at most STEP_S, or the fastest
+    rank count if none does."""
+    each = [costs(two, big_two, base_two) for two, big_two in steps]
+    c = {**each[-1], "c_pix": max(e["c_pix"] for e in each),
+         "c_comp": max(e["c_comp"] for e in each)}
+    two = steps[-1][0]
     pix = two["width"] * two["height"]
     options = [(ranks, predict(c, n, ranks, pix)) for ranks in (2 ** k for k in range(13))]
     fits = [(r, p) for r, p in options if p["peak_rss_bytes_per_rank"] <= MEMORY_PER_RANK]
@@ -287,9 +293,13 @@ def large_run(two: dict, big_two: dict, base_two: dict, n: int = LARGE_RUN) -> d
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m bench.render_mpi",
-        description="Render one step on 1 and 2 MPI ranks (the 1M column, a random 8M step; "
-                    "1024x768 and 2048x1536): phase times, peak RSS, and a model for up to "
-                    "64 ranks. Prints JSON lines.")
+        description="Render one step on 1 MPI rank (2 numba threads) and on 2 ranks (1 thread "
+                    "each): the 1M column and a random 8M step, at 1024x768 and 2048x1536. "
+                    "Prints JSON lines: baseline_rss_bytes (a process's floor at N = 1 and "
+                    "2), render_mpi (phase times, peak RSS per rank), render_mpi_ratio "
+                    "(N = 2 over N = 1), render_mpi_model (time per step up to 64 ranks "
+                    "from the measured costs), render_mpi_large (what a 100M-particle run "
+                    "would need). About 5 minutes on 2 quiet cores.")
     parser.add_argument("--large", type=int, default=8_000_000,
                         help="particles of the synthetic step (default 8,000,000; 0: skip it)")
     parser.add_argument("--worker", choices=("column", "random", "baseline"),
@@ -336,8 +346,8 @@ def main(argv: list[str] | None = None) -> None:
             print(json.dumps(ratio), flush=True)
         for line in model(rows[kind, 2, w0], rows[kind, 2, w1], base[2]):
             print(json.dumps(line), flush=True)
-    kind = "random" if args.large else "column"  # the larger step's costs
-    print(json.dumps(large_run(rows[kind, 2, w0], rows[kind, 2, w1], base[2])), flush=True)
+    steps_two = [(rows[kind, 2, w0], rows[kind, 2, w1]) for kind, _ in steps]
+    print(json.dumps(large_run(steps_two, base[2])), flush=True)
 
 
 if __name__ == "__main__":

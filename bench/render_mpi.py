@@ -299,7 +299,7 @@ def main(argv: list[str] | None = None) -> None:
                     "2), render_mpi (phase times, peak RSS per rank), render_mpi_ratio "
                     "(N = 2 over N = 1), render_mpi_model (time per step up to 64 ranks "
                     "from the measured costs), render_mpi_large (what a 100M-particle run "
-                    "would need). About 5 minutes on 2 quiet cores.")
+                    "would need). Half a minute to two minutes on 2 cores.")
     parser.add_argument("--large", type=int, default=8_000_000,
                         help="particles of the synthetic step (default 8,000,000; 0: skip it)")
     parser.add_argument("--worker", choices=("column", "random", "baseline"),

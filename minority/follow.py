@@ -346,10 +346,11 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
 
 
 def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
-                  c1: int) -> tuple[dict[str, float], float]:
+                  c1: int) -> tuple[dict[str, float], float, float]:
     """The run's events (s) on its observed Stats up to the rollout's last history frame
     joined to the rollout's series after it (speeds at its frames' times, scaled by the
-    run / rollout speed-scale ratio at the join, within CALIBRATION), and that ratio."""
+    run / rollout speed-scale ratio at the join, within CALIBRATION), that ratio, and the
+    end of the joined series' last fast window (speed scale >= half its peak), s."""
     sp = speeds(rollout, dt, centered=True)  # [frames, m] m/s
     r_t = t0_s + np.arange(len(sp)) * dt
     r_scale = np.quantile(sp, SPEED_QUANTILE, axis=1)
@@ -371,7 +372,8 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     at = {"failure_onset": e.onset_s, "runout_start": start, "peak_motion": e.peak_s,
           "runout_end": e.runout_end_s}
     # what the run already showed, by the online rules, over the joined series' reading
-    return {**at, **observed_events(t, scale, ke, float(ratio * r_scale.max()))}, ratio
+    return ({**at, **observed_events(t, scale, ke, float(ratio * r_scale.max()))}, ratio,
+            float(fast[-1][1]) if fast else e.peak_s)
 
 
 class _Segment(Oracle):
@@ -452,7 +454,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     coarse-grain, roll the GNS to rest, then ask plan() -> (from_s, frames): when the spec
     will be adopted (s of the run's time) and how many frames it may plan; join the events
     and plan (gns.oracle) windows from from_s on within those frames (none when the joined
-    forecast has the flow at rest by then or the budget is spent: the spec in force ended
+    forecast's fast phase is over by then or the budget is spent: the spec in force ended
     at from_s, with the forecast's events). stats: the checkpoint's
     (particle_spacing_m, frame_interval_s). Returns the spec (snapshots cleared) and what
     its provenance records; TooLate when from_s is past the run's last model frame.
@@ -472,10 +474,11 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     if from_s > scene.duration_s - dt:
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
-    at, ratio = joined_events(flow, t0, dt, traj, c1)
-    # at rest by then, or the budget spent (under 2 frames a view the oracle plans): events
-    # only, no frame
-    rest = at["runout_end"] <= from_s or frames_left < 2 * len(VIEWS)
+    at, ratio, fast_end = joined_events(flow, t0, dt, traj, c1)
+    # frames go where the motion is fast: none when the fast phase is over by then (the
+    # flow slowing to rest, or at rest), or the budget spent (under 2 frames a view the
+    # oracle plans): events only
+    rest = fast_end <= from_s or frames_left < 2 * len(VIEWS)
     v0 = spec.to_dict()["views"][0]
     options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(VIEWS)),
                             width=v0["width"],
@@ -489,7 +492,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
         new = Spec.from_dict({**without_future(spec, from_s), "events": new.to_dict()["events"],
                               "provenance": new.provenance})
     info = {"particles": int(history.shape[1]), "rollout_frames": int(len(traj) - c1),
-            "calibration": float(ratio), "from_s": float(from_s),
+            "calibration": float(ratio), "from_s": float(from_s), "fast_end_s": fast_end,
             "frames_planned": 0 if rest else int(options.frames),
             "plan_s": time.perf_counter() - t_plan, "forecast_s": time.perf_counter() - t_start}
     return Spec.from_dict({**new.to_dict(), "provenance": {**new.provenance,

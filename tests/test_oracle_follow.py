@@ -393,7 +393,8 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames):
     assert asked and info["from_s"] == pytest.approx(t0 + 0.04) and info["particles"] == 128
     assert Spec.from_dict(new.to_dict()) == new and new.encode()
     windows = [w for v in new.views for w in v.schedule]
-    assert frames >= 6 or not info["frames_planned"]  # the budget spent: events only
+    # events only when the budget is spent or the fast phase over by the adoption
+    assert (not info["frames_planned"]) == (frames < 6 or info["fast_end_s"] <= t0 + 0.04)
     if info["frames_planned"]:  # planned from its adoption on
         assert 6 <= info["frames_planned"] <= 12
         assert min(w.t_start_s for w in windows) >= t0 + 0.04 - 1e-9

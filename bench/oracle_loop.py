@@ -178,7 +178,8 @@ def measure(scene_name: str, loop: str, log: Path, wall: float) -> dict:
             "events": len(result["events"]),
             "events_within_in_force": in_force_within(log, result),
             "regions_share": result["roi_moving_fraction"],
-            "frames_vs_ideal": (ratio * critical / duration) if ratio and duration else None,
+            "frames_vs_ideal": (ratio * critical / duration)
+            if ratio is not None and duration else None,
             "bytes_share": result["bytes"]["fraction"],
             "updates": sum("update" in s.provenance for s in specs),
             "forecasts": len(forecasts),

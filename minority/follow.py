@@ -35,7 +35,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minority.gns.events import EVENT_NAMES, events_from_series, fast_windows, speeds
+from minority.gns.events import (
+    EVENT_NAMES,
+    FAST_FRACTION,
+    events_from_series,
+    fast_windows,
+    speeds,
+)
 from minority.gns.oracle import VIEWS, Oracle, OracleOptions
 from minority.protocol.flow import (
     MOVING_SPEED_FRACTION,
@@ -476,9 +482,12 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
                       f"{scene.duration_s:.3f} s")
     at, ratio, fast_end = joined_events(flow, t0, dt, traj, c1)
     # frames go where the motion is fast: none when the fast phase is over by then (the
-    # flow slowing to rest, or at rest), or the budget spent (under 2 frames a view the
-    # oracle plans): events only
-    rest = fast_end <= from_s or frames_left < 2 * len(VIEWS)
+    # joined forecast's, and the run's newest speed scale under half its peak so far: a
+    # run still speeding up is not over whatever the rollout says), or the budget spent
+    # (under 2 frames a view the oracle plans): events only
+    scale = flow.scale()
+    slow = len(scale) > 0 and scale[-1] < FAST_FRACTION * scale.max()
+    rest = (fast_end <= from_s and slow) or frames_left < 2 * len(VIEWS)
     v0 = spec.to_dict()["views"][0]
     options = OracleOptions(run=spec.run, frames=max(frames_left, 2 * len(VIEWS)),
                             width=v0["width"],

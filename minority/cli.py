@@ -661,6 +661,10 @@ def _demo_parser(sub) -> None:
     p.add_argument("--http", metavar="[HOST:]PORT",
                    help="watch the run in a browser: the render server's live view on this "
                         "address (0: a free port on 127.0.0.1; the URL is printed)")
+    p.add_argument("--no-follow", action="store_true",
+                   help="leave out the closed-loop oracle (default: minority oracle follow runs "
+                        "beside the server and re-forecasts when the run leaves the "
+                        "prediction; its spec updates in DIR/follow.log)")
     p.set_defaults(func=_cmd_demo, kernels=True)
 
 
@@ -670,7 +674,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     try:
         options = DemoOptions(out=args.out, ranks=args.ranks, duration_s=args.duration,
                               cell_size_m=args.cell_size, frames=args.frames,
-                              threads=args.threads, http=args.http)
+                              threads=args.threads, http=args.http,
+                              follow=not args.no_follow)
     except ValueError as exc:
         return fail("demo", exc, BAD_INPUT)
     try:

@@ -168,9 +168,10 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
         url_host = f"[{host}]" if ":" in host else host
         say(f"live view: http://{url_host}:{http_port}/ (open it now: the server stops when "
             "the run is rendered)")
-    follower, follow_log = None, open(o.out / "follow.log", "w")  # noqa: SIM115 - closed below
+    follower, follow_log = None, None
     try:
         if o.follow:
+            follow_log = open(o.out / "follow.log", "w")  # noqa: SIM115 - closed below
             follower = start_follower(o, scene, endpoint, env, follow_log)
             say(f"closed-loop oracle: pid {follower.pid}, following run {RUN!r} (updates in "
                 f"{o.out / 'follow.log'})")
@@ -190,7 +191,8 @@ def run_pipeline(o: DemoOptions, scene: Path, spec_path: Path, say: Steps) -> Pa
         stop(server)
         stop(follower)
         server_log.close()
-        follow_log.close()
+        if follow_log is not None:
+            follow_log.close()
     if server.returncode != 0:
         raise RuntimeError(f"the render server failed (exit {server.returncode}); see "
                            f"{o.out / 'server.log'}")
@@ -233,7 +235,7 @@ WHERE = """Files (in {out}/):
   oracle/preview.png    the spec's views rendered on the prediction
   spec.json             the oracle spec the run started with (edit it and replay the log)
   follow.log            the closed-loop oracle's spec updates, a JSON line each: reason,
-                        kind (shift, forecast), the run's time, wall cost (none: --no-follow)
+                        kind (shift, forecast), the run's time, wall cost (absent: --no-follow)
   frames/{run}/VIEW/*.png  the frames the render server ray-traced during the run
   frames/{run}/VIEW.mp4    those frames as a movie (H.264, one per frame at 10 fps)
   frames/{run}/VIEW.webp   a small looping animation of them (320 px wide, under 1 MB)

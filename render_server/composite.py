@@ -15,7 +15,7 @@ direct send, and a brick covers less of the image the more ranks there are.
 from __future__ import annotations
 
 import numpy as np
-from minority.render_server.distribute import Pool
+from minority.render_server.distribute import Pool, alltoallv_rows
 from numba import njit, prange
 
 RECORD_WORDS = 3  # uint64 words of a pixel record: index << 24 | rgb, depth bits, key
@@ -86,18 +86,6 @@ def _row_type(row_bytes: int):
     return MPI.BYTE.Create_contiguous(row_bytes).Commit()
 
 
-def _exchange(comm, send, send_counts, recv_counts, row_bytes: int, recv):
-    """Alltoallv of rows of row_bytes (send and recv grouped by rank, counts in rows)."""
-    row = _row_type(row_bytes)
-    try:
-        comm.Alltoallv([send.view(np.uint8).reshape(-1),
-                        (send_counts, np.cumsum(send_counts) - send_counts), row],
-                       [recv.view(np.uint8).reshape(-1),
-                        (recv_counts, np.cumsum(recv_counts) - recv_counts), row])
-    finally:
-        row.Free()
-
-
 def composite(comm, rgb: np.ndarray, depth: np.ndarray, key: np.ndarray, root: int = 0,
               pool: Pool | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Composite every rank's layer (collective): rgb [h, w, 3] uint8, depth [h * w] float64
@@ -127,7 +115,7 @@ def composite(comm, rgb: np.ndarray, depth: np.ndarray, key: np.ndarray, root: i
     send = pool.get("composite_send", (int(send_counts.sum()), RECORD_WORDS), np.uint64)
     _pack(flat, depth, key, starts, np.cumsum(send_counts) - send_counts, me, send)
     recv = pool.get("composite_recv", (int(recv_counts.sum()), RECORD_WORDS), np.uint64)
-    _exchange(comm, send, send_counts, recv_counts, RECORD_WORDS * 8, recv)
+    alltoallv_rows(comm, send, send_counts, recv, recv_counts)
     del send
     mine = int(rows[me + 1] - rows[me])
     band_rgb = pool.get("composite_rgb", (mine * w, 3), np.uint8)

@@ -325,8 +325,8 @@ def _unpack_rows(src, col, starts, counts, at, dst):
                 dst[at[g] + i, j] = src[starts[g] + i, col + j]
 
 
-def _alltoallv_into(comm, send: np.ndarray, send_counts: np.ndarray, recv: np.ndarray,
-                    recv_counts: np.ndarray) -> None:
+def alltoallv_rows(comm, send: np.ndarray, send_counts: np.ndarray, recv: np.ndarray,
+                   recv_counts: np.ndarray) -> None:
     """Exchange rows of send [k, w] (grouped by destination rank, send_counts [ranks] rows
     each) into recv [sum(recv_counts), w], grouped by source rank. Counts are in rows of a
     contiguous MPI type, so no count overflows int32 below 2^31 rows."""
@@ -490,7 +490,7 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
         for a, col in zip(src, cols, strict=False):
             _pack_rows(a, order, group + r * per, send_n, np.cumsum(send_n) - send_n, send,
                        col)
-        _alltoallv_into(comm, send, send_n, recv, recv_n)
+        alltoallv_rows(comm, send, send_n, recv, recv_n)
         for o, col in zip([] if untouched else out, cols, strict=False):
             _unpack_rows(recv, col, np.cumsum(recv_n) - recv_n, recv_n, at + r * per,
                          _rows(o, word))

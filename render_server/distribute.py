@@ -90,19 +90,11 @@ def build_tree(sample: np.ndarray, sample_keys: np.ndarray, ranks: int, lo: np.n
     sources [m] int64 (the rank each sample particle is on now), a node splits along the
     axis that keeps the most particles where they are when that beats the longest axis by
     more than KEEP_MARGIN of the node's sample (see _axis_choice)."""
-    axis, plane, pkey, low, high, rank, boxes = [], [], [], [], [], [], {}
+    t = _TreeBuilder()
 
     def node(index: np.ndarray, k: int, first: int, box_lo: np.ndarray, box_hi: np.ndarray) -> int:
-        me = len(axis)
-        axis.append(LEAF)
-        plane.append(0.0)
-        pkey.append(0)
-        low.append(-1)
-        high.append(-1)
-        rank.append(-1)
+        me = t.add(k, first, box_lo, box_hi)
         if k == 1:
-            rank[me] = first
-            boxes[first] = (box_lo, box_hi)
             return me
         pts = sample[index]
         span = pts.max(axis=0) - pts.min(axis=0) if len(index) > 1 else box_hi - box_lo
@@ -115,25 +107,55 @@ def build_tree(sample: np.ndarray, sample_keys: np.ndarray, ranks: int, lo: np.n
             go_low = pts[:, a] < p
         else:
             order = np.lexsort((sample_keys[index], pts[:, a]))
-            t = index[order[c]]
-            p, pk = float(sample[t, a]), int(sample_keys[t])
+            i = index[order[c]]
+            p, pk = float(sample[i, a]), int(sample_keys[i])
             go_low = np.zeros(len(index), bool)
             go_low[order[:c]] = True
-        axis[me], plane[me], pkey[me] = a, p, pk
-        split_hi, split_lo = box_hi.copy(), box_lo.copy()
-        split_hi[a] = split_lo[a] = min(max(p, box_lo[a]), box_hi[a])
-        low[me] = node(index[go_low], k_low, first, box_lo, split_hi)
-        high[me] = node(index[~go_low], k - k_low, first + k_low, split_lo, box_hi)
+        split_hi, split_lo = t.split(me, a, p, pk, box_lo, box_hi)
+        t.low[me] = node(index[go_low], k_low, first, box_lo, split_hi)
+        t.high[me] = node(index[~go_low], k - k_low, first + k_low, split_lo, box_hi)
         return me
 
     node(np.arange(len(sample)), ranks, 0, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
-    return _tree(axis, plane, pkey, low, high, rank, boxes, ranks)
+    return t.tree(ranks)
 
 
-def _tree(axis, plane, pkey, low, high, rank, boxes, ranks) -> KdTree:
-    return KdTree(np.array(axis, np.int64), np.array(plane, np.float64), np.array(pkey, np.int64),
-                  np.array(low, np.int64), np.array(high, np.int64), np.array(rank, np.int64),
-                  np.array([boxes[r] for r in range(ranks)], np.float64).reshape(ranks, 2, 3))
+class _TreeBuilder:
+    """A KdTree's node lists as the tree is built, root first."""
+
+    def __init__(self):
+        self.axis, self.plane, self.pkey, self.low, self.high, self.rank = [], [], [], [], [], []
+        self.boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def add(self, k: int, first: int, box_lo: np.ndarray, box_hi: np.ndarray) -> int:
+        """A new node for ranks first..first+k-1 in the box [box_lo, box_hi]: rank first's
+        leaf when k == 1. Returns its index."""
+        me = len(self.axis)
+        self.axis.append(LEAF)
+        self.plane.append(0.0)
+        self.pkey.append(0)
+        self.low.append(-1)
+        self.high.append(-1)
+        self.rank.append(first if k == 1 else -1)
+        if k == 1:
+            self.boxes[first] = (box_lo, box_hi)
+        return me
+
+    def split(self, me: int, a: int, p: float, pk: int, box_lo: np.ndarray,
+              box_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Node `me` splits along axis a at (p, pk); returns (the low side's box_hi, the high
+        side's box_lo)."""
+        self.axis[me], self.plane[me], self.pkey[me] = a, p, pk
+        split_hi, split_lo = box_hi.copy(), box_lo.copy()
+        split_hi[a] = split_lo[a] = min(max(p, box_lo[a]), box_hi[a])
+        return split_hi, split_lo
+
+    def tree(self, ranks: int) -> KdTree:
+        return KdTree(np.array(self.axis, np.int64), np.array(self.plane, np.float64),
+                      np.array(self.pkey, np.int64), np.array(self.low, np.int64),
+                      np.array(self.high, np.int64), np.array(self.rank, np.int64),
+                      np.array([self.boxes[r] for r in range(ranks)],
+                               np.float64).reshape(ranks, 2, 3))
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -183,32 +205,22 @@ def slab_tree(coord: np.ndarray, key: np.ndarray, counts: np.ndarray, lo: np.nda
             break
     else:
         return None
-    axis, plane, pkey, low, high, rank, boxes = [], [], [], [], [], [], {}
+    t = _TreeBuilder()
 
     def node(k: int, first: int, box_lo: np.ndarray, box_hi: np.ndarray) -> int:
-        me = len(axis)
-        axis.append(LEAF)
-        plane.append(0.0)
-        pkey.append(0)
-        low.append(-1)
-        high.append(-1)
-        rank.append(-1)
+        me = t.add(k, first, box_lo, box_hi)
         if k == 1:
-            rank[me] = first
-            boxes[first] = (box_lo, box_hi)
             return me
         k_low = k // 2
         # the high side starts at rank first + k_low's first particle
         p, pk = float(coord[first + k_low, a, 0]), int(key[first + k_low, a, 0])
-        axis[me], plane[me], pkey[me] = a, p, pk
-        split_hi, split_lo = box_hi.copy(), box_lo.copy()
-        split_hi[a] = split_lo[a] = min(max(p, box_lo[a]), box_hi[a])
-        low[me] = node(k_low, first, box_lo, split_hi)
-        high[me] = node(k - k_low, first + k_low, split_lo, box_hi)
+        split_hi, split_lo = t.split(me, a, p, pk, box_lo, box_hi)
+        t.low[me] = node(k_low, first, box_lo, split_hi)
+        t.high[me] = node(k - k_low, first + k_low, split_lo, box_hi)
         return me
 
     node(ranks, 0, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
-    return _tree(axis, plane, pkey, low, high, rank, boxes, ranks)
+    return t.tree(ranks)
 
 
 @njit(parallel=True, cache=True, nogil=True)

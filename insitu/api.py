@@ -213,9 +213,9 @@ class InSitu:
             if ids.shape != (n,) or ids.dtype.kind not in "iu":  # signed or unsigned integers
                 raise ValueError(f"ids must be [n] integers with n = {n}, got {ids.dtype} "
                                  f"{ids.shape}")
-        if bounds_m is not None and bounds_m is not self._bounds_given[0]:
-            self._bounds_given = (bounds_m, _bounds(bounds_m))  # (as given, checked)
         if bounds_m is not None:
+            if bounds_m is not self._bounds_given[0]:
+                self._bounds_given = (bounds_m, _bounds(bounds_m))  # (as given, checked)
             bounds_m = self._bounds_given[1]
         if not self._pub.due(step, time_s):  # nothing is built or checked further
             return False
@@ -225,9 +225,9 @@ class InSitu:
         particles = Particles(positions, ids if ids is not None else self._default_ids(n), given)
         if copy:
             particles = checked(particles)
-        bounds = bounds_m if bounds_m is not None else self._seen_bounds
-        if copy and bounds_m is None:
-            bounds = self._seen_bounds(particles)
+        bounds = bounds_m
+        if bounds is None:  # the box seen so far: now, or by the sender for a lent step
+            bounds = self._seen_bounds(particles) if copy else self._seen_bounds
         return self._pub.publish(step, time_s, particles, float(spacing_m), bounds,
                                  lend=not copy)
 

@@ -133,19 +133,22 @@ class LentStep:
         if release is not None:
             release()
 
+    def _copy(self) -> Particles:
+        """What the step's messages read, copied (the functions' results kept: computed
+        here); the caller's arrays are given back whether or not it succeeds."""
+        try:
+            given = self._given
+            owned = {k for k, v in given.fields.items() if callable(v)}
+            return computed(given).snapshot(self._names, self._pool, owned)
+        finally:
+            self._give_back()
+
     def get(self) -> Particles:
         if self._ready is None and self._error is None:
             try:
-                given = self._given
-                with_arrays = computed(given)
-                owned = {k for k, v in given.fields.items() if callable(v)}  # computed here
-                copy = with_arrays.snapshot(self._names, self._pool, owned)
-                self._give_back()
-                self._ready = checked(copy)
+                self._ready = checked(self._copy())
             except ValueError as exc:
                 self._error = BadStep(f"step {self.step}: {exc}")
-            finally:
-                self._give_back()
         if self._error is not None:
             raise self._error
         return self._ready

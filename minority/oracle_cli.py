@@ -693,8 +693,9 @@ def _follow_parser(osub) -> None:
     q.add_argument("--scene", required=True,
                    help="the run's scene: a shipped name or a TOML path (domain, friction "
                         "angle and duration for the rollout)")
-    q.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT,
-                   help="GNS checkpoint to roll forward")
+    q.add_argument("--checkpoint", type=Path,
+                   help="GNS checkpoint to roll forward (default: the shipped "
+                        "gns/checkpoints/column_l64_m5.pt)")
     q.add_argument("--ranks", type=int, default=0,
                    help="ranks of the run (0: the most seen sending Stats at one step)")
     q.add_argument("--max-updates", type=int, default=3, metavar="N",
@@ -739,6 +740,7 @@ def _cmd_follow(args: argparse.Namespace) -> int:
     if args.ranks < 0 or args.max_updates < 0 or args.snapshot_lead < 0:
         return _fail("follow", "--ranks, --max-updates and --snapshot-lead must be >= 0",
                      BAD_INPUT)
+    args.checkpoint = args.checkpoint or DEFAULT_CHECKPOINT  # an absolute path: not in --help
     if (status := missing("oracle follow", args.checkpoint)) is not None:
         return status
     try:

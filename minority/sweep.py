@@ -102,7 +102,8 @@ def _run_all(todo: list[ScenePlan], out: Path, jobs: int, threads: int, log) -> 
         done_count = 0
         while pending:
             done, _ = wait(pending, return_when=FIRST_EXCEPTION)
-            for fut in done:
+            # in plan order: of two scenes that failed by now, the first planned is reported
+            for fut in sorted(done, key=lambda f: todo.index(pending[f])):
                 p = pending.pop(fut)
                 exc = fut.exception()
                 if exc is not None:  # stop: the queued scenes are dropped, running ones end

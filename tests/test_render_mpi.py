@@ -1,32 +1,50 @@
 """Rendering one step on N MPI ranks (render_server.render_mpi): frames pixel-identical to
 the one-process render_views of the same step and spec, for a lattice, a random heap with
-duplicated particles (exact depth ties across ranks), and a collapsed-column-like step with
-the showcase's kind of views (perspective and parallel, regions, decimation, annotations);
-balanced bricks; the pieces (k-d tree, compositing) in one process.
+duplicated particles (exact depth ties across ranks), a collapsed-column-like step with
+the showcase's kind of views (perspective and parallel, regions, decimation, annotations),
+and a replayed showcase step: the demo's column collapse (1,800 particles) simulated by
+`minority sim` on 2 ranks against `minority serve` on loopback, its mid-collapse step read
+back out of the server's log as `minority replay` reads it; balanced bricks; the pieces
+(k-d tree, compositing) in one process.
 
 The ranks run under the venv's mpiexec (this file is the worker: `python
-tests/test_render_mpi.py OUT_DIR [scale]`), one numba thread each, as in test_sim_mpi.
+tests/test_render_mpi.py OUT_DIR [scale [LOG]]`), one numba thread each, as in test_sim_mpi.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port
+from minority.protocol import keys
+from minority.protocol.log import read_log
 from minority.protocol.spec import Spec
-from minority.render_server.assemble import AssembledStep
+from minority.render_server.assemble import AssembledStep, StepAssembler
 from minority.render_server.composite import bands, composite
 from minority.render_server.distribute import build_tree
 from minority.render_server.frames import render_views
+from minority.render_server.particles import ParticleCache, complete_step
 from minority.render_server.render_mpi import SHADOWS_REFUSED, render_views_distributed
+from minority.render_server.rerender import MAX_PENDING_STEPS, recorded_steps
+
+from minority.demo import DemoOptions, demo_column
 
 TIMEOUT_S = 600
 CASES = ("lattice", "heap", "column")
+# the replayed showcase step as the server rendered it (completed from its particle cache:
+# every view draws the whole column), and its fresh rows alone (what a `--no-context` run
+# sends: the particles in the due views' regions; each view draws its own regions)
+REPLAYED = ("replayed", "replayed_fresh")
 SIDE = {"position": [0.35, -1.2, 0.16], "focal_point": [0.35, 0.072, 0.12],
         "view_up": [0, 0, 1], "view_angle_deg": 30}
 TOP = {"position": [0.4, 0.072, 1.5], "focal_point": [0.4, 0.072, 0.0], "view_up": [0, 1, 0],
@@ -46,9 +64,67 @@ def view(name: str, camera: dict, **kw) -> dict:
             "field": "displacement", "colormap": "Cool to Warm", "range": [0.0, 0.4], **kw}
 
 
-def case(name: str, scale: int = 1) -> tuple[AssembledStep, Spec, np.ndarray]:
+# The replayed showcase: minority/demo.py's column (column_13k's geometry and material) at
+# `minority demo --cell-size 0.032` (1,800 particles) in its channel x 0..0.8 m (flow),
+# y 0..0.16 m, z 0..0.416 m, simulated to SHOWCASE_END_S. The spec asks for a step every
+# 0.05 s from 0.15 s; the last, at 0.25 s, is mid-collapse: the front at about 0.27 m,
+# moving at about 1 m/s, the heap 0.25 m high (the runout ends near 0.6 m at 0.6 s).
+SHOWCASE_RUN = "column"
+SHOWCASE_CELL_M = 0.032
+SHOWCASE_END_S = 0.26
+SHOWCASE_REGIONS = [
+    {"name": "front", "lo_m": [0.2, 0.0, 0.0], "hi_m": [0.8, 0.16, 0.416]},  # the runout
+    {"name": "base", "lo_m": [0.0, 0.0, 0.0], "hi_m": [0.2, 0.16, 0.1]},  # the foot of the wall
+    {"name": "nowhere", "lo_m": [5.0, 5.0, 5.0], "hi_m": [6.0, 6.0, 6.0]}]
+
+
+def showcase_view(name: str, camera: dict, regions: list[str], **kw) -> dict:
+    window = {"t_start_s": 0.15, "t_end_s": 0.25, "every_s": 0.05, "regions": regions}
+    return view(name, camera, range=[0.0, 0.2], schedule=[window], **kw)
+
+
+# the column above the base (x < 0.2 m, z > 0.1 m) is in no region: sent as context rows
+SHOWCASE_SPEC = {"version": 2, "run": SHOWCASE_RUN, "regions": SHOWCASE_REGIONS, "views": [
+    showcase_view("side", SIDE, ["front"]),
+    showcase_view("top", TOP, ["front", "base"], decimate=3),
+    showcase_view("aerial", AERIAL, ["base"], decimate=2, annotations=False),
+    showcase_view("empty", AERIAL, ["nowhere"], background=[0, 0, 1])]}
+
+
+@functools.lru_cache(maxsize=2)
+def replayed(log: Path) -> dict:
+    """The showcase log read as `minority replay` reads it (rerender.recorded_steps, then the
+    particle cache): "history", each logged step's (time s, front x m); and for the last
+    step, for each name of REPLAYED, (step, the recorded spec in force, each row's sim rank).
+    A step's rows: the fresh rows of its chunks in sim-rank order, then the cached rows."""
+    cache = ParticleCache()
+    history = []
+    steps = recorded_steps(log, SHOWCASE_RUN, StepAssembler(max_pending=MAX_PENDING_STEPS))
+    for read in steps:
+        step, spec = read
+        full = complete_step(cache, step)
+        history.append((step.time_s, float(full.positions[:, 0].max())))
+    fresh = {}  # sim rank -> fresh rows of its chunk of the last step
+    for record in read_log(log, topics=[keys.log_topic(SHOWCASE_RUN, keys.Topic.CHUNK)]):
+        chunk = record.decode()
+        if chunk.step == step.step:
+            fresh[chunk.rank] = chunk.fresh
+    sim_ranks = sorted(fresh)
+    fresh_rank = np.repeat(np.array(sim_ranks, np.int64), [fresh[r] for r in sim_ranks])
+    step = dataclasses.replace(step, context=[])
+    return {"history": history, "replayed_fresh": (step, spec, fresh_rank),
+            "replayed": (full, spec, np.concatenate([fresh_rank, cache.rank.astype(np.int64)]))}
+
+
+def case(name: str, scale: int = 1, log: Path | None = None
+         ) -> tuple[AssembledStep, Spec, np.ndarray]:
     """The whole step, its spec, and the rank (of 3 groups, folded onto the rank count) each
-    row starts on. Same on every rank: seeded."""
+    row starts on. Same on every rank: seeded, or read from the showcase `log` (a row starts
+    on the render rank of its sim rank, as in `minority serve --ranks N`)."""
+    if name in REPLAYED:
+        if log is None:
+            raise ValueError(f"case {name!r} needs the showcase log")
+        return replayed(log)[name]
     rng = np.random.default_rng(7)
     if name == "lattice":
         # 35 x 8 x 20 sites, every site twice (the second copy another colour), overlapping
@@ -99,18 +175,18 @@ def case(name: str, scale: int = 1) -> tuple[AssembledStep, Spec, np.ndarray]:
     return step, spec, start
 
 
-def worker(out: Path, scale: int) -> None:
-    """Under mpiexec: render every case on this communicator; rank 0 writes the frames."""
+def worker(out: Path, scale: int, log: Path | None) -> None:
+    """Under mpiexec: render every case (the replayed ones with a log) on this communicator;
+    rank 0 writes the frames."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     meta = {}
-    for name in CASES:
-        step, spec, start = case(name, scale)
+    for name in CASES + (REPLAYED if log is not None else ()):
+        step, spec, start = case(name, scale, log)
         rows = np.flatnonzero(start % comm.size == comm.rank)
-        mine = AssembledStep(step.step, step.time_s, step.positions[rows],
-                             {k: v[rows] for k, v in step.fields.items()}, step.spacing_m, 1, 1,
-                             0, 0.0, False, step.prev_time_s, bounds_m=step.bounds_m)
+        mine = dataclasses.replace(step, positions=step.positions[rows],
+                                   fields={k: v[rows] for k, v in step.fields.items()})
         frames, times = render_views_distributed(comm, mine, spec, {}, keys=rows)
         if comm.rank == 0:
             np.savez(out / f"{name}.npz", **{f.view.name: f.image for f in frames})
@@ -159,25 +235,63 @@ def exchange_checks(comm) -> dict:
     return checks
 
 
-def run_ranks(ranks: int, out: Path, scale: int = 1) -> dict:
+def run_ranks(ranks: int, out: Path, scale: int = 1, log: Path | None = None) -> dict:
     mpiexec = str(Path(sys.executable).parent / "mpiexec")
     proc = subprocess.run([mpiexec, "-n", str(ranks), sys.executable, __file__, str(out),
-                           str(scale)], capture_output=True, text=True, timeout=TIMEOUT_S,
+                           str(scale), *([str(log)] if log is not None else [])],
+                          capture_output=True, text=True, timeout=TIMEOUT_S,
                           env={**os.environ, "NUMBA_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-4000:]
     return json.loads((out / "meta.json").read_text())
 
 
+@pytest.fixture(scope="module")
+def showcase_log(tmp_path_factory) -> Path:
+    """The server's log of the showcase column: `minority serve --spec SHOWCASE_SPEC` on
+    loopback and `minority sim` of the demo's column on 2 ranks, to SHOWCASE_END_S (a few
+    seconds). The server's frames are in the log's folder, {run}/{view}/{step:06d}.png."""
+    tmp = tmp_path_factory.mktemp("showcase")
+    (tmp / "spec.json").write_text(json.dumps(SHOWCASE_SPEC))
+    scene = demo_column(DemoOptions(cell_size_m=SHOWCASE_CELL_M, duration_s=SHOWCASE_END_S))
+    (tmp / "column.toml").write_text(scene)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
+    err = tmp / "serve.err"
+    server = subprocess.Popen(
+        [sys.executable, "-m", "minority", "serve", "--spec", str(tmp / "spec.json"), "--out",
+         str(tmp / "out"), "--timeout", "30", "--listen", endpoint, "--exit-when-done"],
+        stderr=err.open("w"), env=env, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while "serving run" not in err.read_text():  # its line once it serves the spec
+            assert server.poll() is None, err.read_text()[-3000:]
+            assert time.monotonic() < deadline, "the server did not start"
+            time.sleep(0.1)
+        sim = subprocess.run(
+            [sys.executable, "-m", "minority", "sim", str(tmp / "column.toml"), "--ranks", "2",
+             "--run", SHOWCASE_RUN, "--out", str(tmp / "column.h5"), "--quiet", "--connect",
+             endpoint, "--wait", "30"], capture_output=True, text=True, timeout=300, env=env)
+        assert sim.returncode == 0, sim.stderr[-3000:]
+        assert server.wait(300) == 0, err.read_text()[-3000:]
+    finally:
+        try:  # what is left of the server's process group
+            os.killpg(server.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        server.wait()
+    return tmp / "out" / f"{SHOWCASE_RUN}.mcap"
+
+
 @pytest.fixture(scope="module", params=[2, 3])
-def distributed(request, tmp_path_factory):
+def distributed(request, tmp_path_factory, showcase_log):
     out = tmp_path_factory.mktemp(f"ranks{request.param}")
-    return request.param, out, run_ranks(request.param, out)
+    return request.param, out, run_ranks(request.param, out, log=showcase_log)
 
 
-@pytest.mark.parametrize("name", CASES)
-def test_frames_are_pixel_identical_to_one_process(distributed, name):
+@pytest.mark.parametrize("name", CASES + REPLAYED)
+def test_frames_are_pixel_identical_to_one_process(distributed, showcase_log, name):
     ranks, out, meta = distributed
-    step, spec, _ = case(name)
+    step, spec, _ = case(name, log=showcase_log)
     reference = {f.view.name: f for f in render_views(step, spec, {})}
     got = np.load(out / f"{name}.npz")
     assert sorted(got.files) == sorted(reference)
@@ -189,13 +303,43 @@ def test_frames_are_pixel_identical_to_one_process(distributed, name):
     assert all(len(np.unique(r.image.reshape(-1, 3), axis=0)) > 20 for r in drawn)
 
 
-def test_bricks_are_balanced(distributed):
+def test_bricks_are_balanced(distributed, showcase_log):
     ranks, _, meta = distributed
-    for name in CASES:
+    for name in CASES + REPLAYED:
         counts = np.array(meta[name]["counts"])
-        total = len(case(name)[0].positions)
+        total = len(case(name, log=showcase_log)[0].positions)
         assert counts.sum() == total
         assert np.abs(counts - total / ranks).max() <= 0.03 * total / ranks, (name, counts)
+
+
+def test_replayed_step_is_the_servers_mid_collapse_step(showcase_log):
+    """The replayed case is what it claims: the step the server rendered (its own frames,
+    pixel for pixel), mid-collapse, completed from the cache, every view's regions holding
+    particles of it and leaving others out, a chunk from each of the 2 sim ranks."""
+    from PIL import Image
+
+    history = replayed(showcase_log)["history"]
+    (t0, front0), (t1, front1) = history[-2:]
+    assert len(history) == 3 and abs(t1 - 0.25) < 0.01, history
+    assert 0.24 < front1 < 0.4 and front1 - front0 > 0.02, history  # the front moving
+    full, spec, start = case("replayed", log=showcase_log)
+    fresh = case("replayed_fresh", log=showcase_log)[0]
+    assert full.completed and full.cached > 0 and len(full.positions) == 1800
+    assert np.array_equal(full.positions[:len(fresh.positions)], fresh.positions)
+    assert "id" in full.fields and sorted(np.unique(start)) == [0, 1]
+    assert not fresh.completed and 0 < len(fresh.positions) < len(full.positions)
+    frames = showcase_log.parent / SHOWCASE_RUN
+    for ref in render_views(full, spec, {}):
+        server = np.asarray(Image.open(frames / ref.view.name / f"{full.step:06d}.png"))
+        assert np.array_equal(server, ref.image), ref.view.name
+    for v in spec.views:  # each view's regions: some of the column, not all (empty: none)
+        inside = np.zeros(len(full.positions), bool)
+        for b in spec.view_regions(v, full.step, full.time_s, full.prev_time_s):
+            inside |= np.all((full.positions >= b.lo_m) & (full.positions <= b.hi_m), axis=1)
+        low, high = (0, 0) if v.name == "empty" else (1, len(inside) - 1)
+        assert low <= inside.sum() <= high, (v.name, inside.sum())
+    shown = {r.view.name: r.particles for r in render_views(fresh, spec, {})}
+    assert shown["empty"] == 0 and all(shown[k] > 0 for k in ("side", "top", "aerial"))
 
 
 def test_exchange_keeps_slabs_and_moves_rows_in_rounds(distributed):
@@ -337,7 +481,8 @@ def test_shadows_on_several_ranks_are_refused():
 
 if __name__ == "__main__":
     try:
-        worker(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 1)
+        worker(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 1,
+               Path(sys.argv[3]) if len(sys.argv) > 3 else None)
     except BaseException:  # one rank failing must not leave the others waiting
         import traceback
 

@@ -67,38 +67,52 @@ def _bucket(z, zlo, zscale):
     return min(max(int((z - zlo) * zscale), 0), DEPTH_BUCKETS - 1)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _down32(z):
+    """z as float32, rounded toward -inf (a nearest depth may only move nearer: culling
+    against it stays conservative)."""
+    z32 = np.float32(z)
+    if z32 > z:
+        z32 = np.nextafter(z32, np.float32(-np.inf))
+    return z32
+
+
 @njit(parallel=True, cache=True, nogil=True)
-def _footprints(positions, r, f, width, height, zlo, zscale, band_rows, i0, i1, j0, j1, zmin,
+def _footprints(positions, r, f, width, height, zlo, zscale, band_rows, box, bucket, zmin,
                 counts):
-    """Footprint and nearest depth of every sphere, and counts[c, band * DEPTH_BUCKETS +
-    depth bucket] of the references of particle chunk c (one pass, chunks in parallel)."""
+    """Footprint box [n, 4] (i0, i1, j0, j1; empty: i0 > i1), depth bucket [n] and nearest
+    depth zmin [n] (float32, rounded down) of every sphere, and counts[c, band *
+    DEPTH_BUCKETS + depth bucket] of the references of particle chunk c (one pass, chunks in
+    parallel)."""
     n_chunks, n = counts.shape[0], positions.shape[0]
     for c in prange(n_chunks):
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            i0[p], i1[p], j0[p], j1[p], zmin[p] = _footprint(positions, p, r, f, width, height)
-            if i0[p] <= i1[p] and j0[p] <= j1[p]:
-                k = _bucket(zmin[p], zlo, zscale)
-                for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
+            i0, i1, j0, j1, z = _footprint(positions, p, r, f, width, height)
+            box[p, 0], box[p, 1], box[p, 2], box[p, 3] = i0, i1, j0, j1
+            zmin[p] = _down32(z)
+            if i0 <= i1 and j0 <= j1:
+                k = _bucket(z, zlo, zscale)
+                bucket[p] = k
+                for b in range(j0 // band_rows, j1 // band_rows + 1):
                     counts[c, b * DEPTH_BUCKETS + k] += 1
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bin_fill(positions, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, rec_id, rec_box,
-              rec_z, rec_c):
+def _bin_fill(positions, box, bucket, zmin, band_rows, offsets, rec_id, rec_box, rec_z, rec_c):
     """Write each chunk's references at its offsets: compact records (id, footprint, zmin,
     center) grouped by band, front to back within a band."""
     n_chunks, n = offsets.shape[0], zmin.shape[0]
     for c in prange(n_chunks):
         fill = offsets[c].copy()
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            if i0[p] <= i1[p] and j0[p] <= j1[p]:
-                k = _bucket(zmin[p], zlo, zscale)
-                for b in range(j0[p] // band_rows, j1[p] // band_rows + 1):
+            if box[p, 0] <= box[p, 1] and box[p, 2] <= box[p, 3]:
+                k = np.int64(bucket[p])
+                for b in range(box[p, 2] // band_rows, box[p, 3] // band_rows + 1):
                     r = fill[b * DEPTH_BUCKETS + k]
                     fill[b * DEPTH_BUCKETS + k] += 1
                     rec_id[r] = p
-                    rec_box[r, 0], rec_box[r, 1] = i0[p], i1[p]
-                    rec_box[r, 2], rec_box[r, 3] = j0[p], j1[p]
+                    rec_box[r, 0], rec_box[r, 1] = box[p, 0], box[p, 1]
+                    rec_box[r, 2], rec_box[r, 3] = box[p, 2], box[p, 3]
                     rec_z[r] = zmin[p]
                     rec_c[r, 0], rec_c[r, 1] = positions[p, 0], positions[p, 1]
                     rec_c[r, 2] = positions[p, 2]
@@ -198,21 +212,26 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     n_bands = min(height, BANDS_PER_WORKER * n_workers)
     band_rows = -(-height // n_bands)
     n_bands = -(-height // band_rows)
-    i0, i1 = np.empty(n, np.int32), np.empty(n, np.int32)
-    j0, j1 = np.empty(n, np.int32), np.empty(n, np.int32)
-    zmin = np.empty(n)
+    # per sphere 13 bytes, per reference 28 (float32 positions, image sides < 32767, fewer
+    # than 2^31 spheres): int16 pixel bounds, a float32 nearest depth rounded down (it only
+    # culls) and the center in the positions' own dtype (exact, so every depth is the same)
+    box_type = np.int16 if max(width, height) < np.iinfo(np.int16).max else np.int32
+    box, zmin = np.empty((n, 4), box_type), np.empty(n, np.float32)
+    bucket = np.zeros(n, np.uint8)  # DEPTH_BUCKETS = 256
     counts = np.zeros((CHUNKS_PER_WORKER * n_workers, n_bands * DEPTH_BUCKETS), np.int64)
-    _footprints(pos, radius, frame, width, height, zlo, zscale, band_rows, i0, i1, j0, j1, zmin,
+    _footprints(pos, radius, frame, width, height, zlo, zscale, band_rows, box, bucket, zmin,
                 counts)
     totals = counts.sum(axis=0)
     key_start = np.cumsum(totals) - totals
     offsets = key_start[None, :] + np.cumsum(counts, axis=0) - counts
+    del counts
     m = int(totals.sum())
     band_start = np.append(key_start[::DEPTH_BUCKETS], m)
-    rec_id, rec_box = np.empty(m, np.int64), np.empty((m, 4), np.int32)
-    rec_z, rec_c = np.empty(m), np.empty((m, 3))
-    _bin_fill(pos, i0, i1, j0, j1, zmin, zlo, zscale, band_rows, offsets, rec_id, rec_box,
-              rec_z, rec_c)
+    rec_id = np.empty(m, np.int32 if n < np.iinfo(np.int32).max else np.int64)
+    rec_box, rec_z, rec_c = np.empty((m, 4), box_type), np.empty(m, np.float32), \
+        np.empty((m, 3), pos.dtype)
+    _bin_fill(pos, box, bucket, zmin, band_rows, offsets, rec_id, rec_box, rec_z, rec_c)
+    del box, bucket, zmin  # the records hold what the cast needs
     if out is None:
         out = (np.empty(width * height), np.empty(width * height, np.int32))
     hit_t, hit_id = out
@@ -224,6 +243,7 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
         raise ValueError(f"keys must be int64 [{n}], got {keys.dtype} {keys.shape}")
     _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
                 rec_box, rec_z, rec_c, n_workers, keys, hit_t, hit_id)
+    del rec_id, rec_box, rec_z, rec_c
     if metres:
         _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id

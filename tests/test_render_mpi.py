@@ -68,7 +68,7 @@ def view(name: str, camera: dict, **kw) -> dict:
 # `minority demo --cell-size 0.032` (1,800 particles) in its channel x 0..0.8 m (flow),
 # y 0..0.16 m, z 0..0.416 m, simulated to SHOWCASE_END_S. The spec asks for a step every
 # 0.05 s from 0.15 s; the last, at 0.25 s, is mid-collapse: the front at about 0.27 m,
-# moving at about 1 m/s, the heap 0.25 m high (the runout ends near 0.6 m at 0.6 s).
+# moving at about 1 m/s, the heap 0.25 m high (the demo's runout ends near 0.62 s).
 SHOWCASE_RUN = "column"
 SHOWCASE_CELL_M = 0.032
 SHOWCASE_END_S = 0.26
@@ -100,10 +100,10 @@ def replayed(log: Path) -> dict:
     cache = ParticleCache()
     history = []
     steps = recorded_steps(log, SHOWCASE_RUN, StepAssembler(max_pending=MAX_PENDING_STEPS))
-    for read in steps:
-        step, spec = read
-        full = complete_step(cache, step)
+    for step, recorded in steps:
+        full = complete_step(cache, step)  # as the server completed it from its cache
         history.append((step.time_s, float(full.positions[:, 0].max())))
+        spec = recorded
     fresh = {}  # sim rank -> fresh rows of its chunk of the last step
     for record in read_log(log, topics=[keys.log_topic(SHOWCASE_RUN, keys.Topic.CHUNK)]):
         chunk = record.decode()
@@ -344,9 +344,10 @@ def test_replayed_step_is_the_servers_mid_collapse_step(showcase_log):
     particles of it and leaving others out, a chunk from each of the 2 sim ranks."""
     from PIL import Image
 
-    history = replayed(showcase_log)["history"]
+    history = replayed(showcase_log)["history"]  # (time s, front x m) of 0.15, 0.2, 0.25 s
+    assert len(history) == 3, history
     (t0, front0), (t1, front1) = history[-2:]
-    assert len(history) == 3 and abs(t1 - 0.25) < 0.01, history
+    assert abs(t1 - 0.25) < 0.01, history
     assert 0.24 < front1 < 0.4 and front1 - front0 > 0.02, history  # the front moving
     full, spec, start = case("replayed", log=showcase_log)
     fresh = case("replayed_fresh", log=showcase_log)[0]

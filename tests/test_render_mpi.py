@@ -268,10 +268,13 @@ def showcase_log(tmp_path_factory) -> Path:
             assert server.poll() is None, err.read_text()[-3000:]
             assert time.monotonic() < deadline, "the server did not start"
             time.sleep(0.1)
+        # context rows resent once they moved 2 mm: the last step draws rows cached at
+        # earlier steps too, appended to the cache in several releases
         sim = subprocess.run(
             [sys.executable, "-m", "minority", "sim", str(tmp / "column.toml"), "--ranks", "2",
              "--run", SHOWCASE_RUN, "--out", str(tmp / "column.h5"), "--quiet", "--connect",
-             endpoint, "--wait", "30"], capture_output=True, text=True, timeout=300, env=env)
+             endpoint, "--wait", "30", "--context-tolerance", "0.002"],
+            capture_output=True, text=True, timeout=300, env=env)
         assert sim.returncode == 0, sim.stderr[-3000:]
         assert server.wait(300) == 0, err.read_text()[-3000:]
     finally:
@@ -340,8 +343,9 @@ def check_balanced(ranks: int, out: Path, meta: dict, names: tuple[str, ...],
 
 def test_replayed_step_is_the_servers_mid_collapse_step(showcase_log):
     """The replayed case is what it claims: the step the server rendered (its own frames,
-    pixel for pixel), mid-collapse, completed from the cache, every view's regions holding
-    particles of it and leaving others out, a chunk from each of the 2 sim ranks."""
+    pixel for pixel), mid-collapse, completed from the cache (rows of several steps), every
+    view's regions holding particles of it and leaving others out, a chunk from each of the
+    2 sim ranks."""
     from PIL import Image
 
     history = replayed(showcase_log)["history"]  # (time s, front x m) of 0.15, 0.2, 0.25 s
@@ -352,6 +356,7 @@ def test_replayed_step_is_the_servers_mid_collapse_step(showcase_log):
     full, spec, start = case("replayed", log=showcase_log)
     fresh = case("replayed_fresh", log=showcase_log)[0]
     assert full.completed and full.cached > 0 and len(full.positions) == 1800
+    assert full.cache_age_steps > 0  # some cached rows were sent at an earlier step
     assert np.array_equal(full.positions[:len(fresh.positions)], fresh.positions)
     assert "id" in full.fields and sorted(np.unique(start)) == [0, 1]
     assert not fresh.completed and 0 < len(fresh.positions) < len(full.positions)

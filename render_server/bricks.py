@@ -7,11 +7,16 @@ classified by the planes in parallel: linear time, balanced to within the sampli
 (about 1% per brick at 8 bricks). A particle belongs to the brick that holds its center; a sphere that
 crosses a brick face is also referenced (as a ghost) by every other brick its bounding box
 touches, so no brick cuts a sphere off.
+
+The split planes and boxes come from the sample alone; the per-particle part (classifying
+every particle, the member lists and ghosts: 8 bytes a member and a transient 16 bytes a
+particle) is done on first use of the members, which only shadow rays and their grids
+need: primary rays (render_server.cast) take the bricks' boxes only.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import njit, prange
@@ -52,16 +57,53 @@ def extent(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return parts[:, 0].min(axis=0), parts[:, 1].max(axis=0)
 
 
-@dataclass
 class Bricks:
-    boxes: np.ndarray  # [b, 2, 3] float64, m: lo and hi corner of each brick (disjoint)
-    start: np.ndarray  # [b + 1] int64: members of brick k are members[start[k]:start[k+1]]
-    members: np.ndarray  # [m] int64 particle indices, owned ones first then ghosts
-    owned: np.ndarray  # [b] int64: how many of each brick's members have their center in it
+    """A power-of-two number of k-d bricks of some positions: boxes, and (classified on first
+    use of `start`, `members` or `owned`) each brick's members."""
+
+    def __init__(self, boxes: np.ndarray, positions: np.ndarray, radius: float,
+                 axes: np.ndarray, planes: np.ndarray):
+        self.boxes = boxes  # [b, 2, 3] float64, m: lo and hi corner of each brick (disjoint)
+        self._split = (positions, radius, axes, planes)
 
     @property
     def count(self) -> int:
         return len(self.boxes)
+
+    @property
+    def start(self) -> np.ndarray:
+        """[b + 1] int64: members of brick k are members[start[k]:start[k+1]]."""
+        return self._members[0]
+
+    @property
+    def members(self) -> np.ndarray:
+        """[m] int64 particle indices, owned ones first then ghosts."""
+        return self._members[1]
+
+    @property
+    def owned(self) -> np.ndarray:
+        """[b] int64: how many of each brick's members have their center in it."""
+        return self._members[2]
+
+    @cached_property
+    def _members(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        pos, radius, axes, planes = self._split
+        n_bricks = self.count
+        order, bounds = _order_by_leaf(pos, axes, planes, n_bricks)
+        boxes = self.boxes
+        counts = np.zeros((n_bricks, n_bricks), np.int64)  # [owner, receiver]
+        _ghost_counts(pos, radius, order, bounds, boxes, counts)
+        owned = np.diff(bounds)
+        sizes = owned + counts.sum(axis=0)
+        start = np.zeros(n_bricks + 1, np.int64)
+        np.cumsum(sizes, out=start[1:])
+        members = np.empty(start[-1], np.int64)
+        for b in range(n_bricks):
+            members[start[b]:start[b] + owned[b]] = order[bounds[b]:bounds[b + 1]]
+        # ghosts of receiver c after its owned members, grouped by owner b
+        offsets = (start[:-1] + owned)[None, :] + np.cumsum(counts, axis=0) - counts
+        _ghost_fill(pos, radius, order, bounds, boxes, offsets, members)
+        return start, members, owned
 
 
 @njit(cache=True, nogil=True)
@@ -147,19 +189,18 @@ def _sort_by_leaf(leaf, n_leaves, order, bounds):
         fill[leaf[p]] += 1
 
 
-def kd_split(positions: np.ndarray, radius: float, levels: int
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Order particles by brick: returns order [n] int64, boxes [2**levels, 2, 3] (m) and
-    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]].
-
-    positions: [n, 3] float32 or float64, m."""
+def _planes(positions: np.ndarray, radius: float, levels: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The k-d split of positions [n, 3] (m) into 2**levels bricks, from the sample: boxes
+    [2**levels, 2, 3] (m; grown by `radius` at the outer faces), axes and planes [nodes]
+    (heap order: children 2i+1, 2i+2)."""
     n = len(positions)
     sample = positions[::max(1, n // SAMPLE)]
     sample_order = np.arange(len(sample), dtype=np.int64)
     starts = np.array([0, len(sample)], dtype=np.int64)
     lo, hi = extent(positions)
     boxes = np.array([[lo - radius, hi + radius]], dtype=np.float64)
-    axes = np.zeros(max(1, (1 << levels) - 1), np.int64)  # heap order: children 2i+1, 2i+2
+    axes = np.zeros(max(1, (1 << levels) - 1), np.int64)
     planes = np.zeros(len(axes))
     for level in range(levels):
         first = (1 << level) - 1
@@ -168,10 +209,29 @@ def kd_split(positions: np.ndarray, radius: float, levels: int
         _kd_level(sample, sample_order, starts, boxes, new_starts, new_boxes,
                   axes[first:first + len(boxes)], planes[first:first + len(boxes)])
         starts, boxes = new_starts, new_boxes
+    return boxes, axes, planes
+
+
+def _order_by_leaf(positions: np.ndarray, axes: np.ndarray, planes: np.ndarray, n_leaves: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Every particle's brick by the planes: order [n] int64 and bounds [n_leaves + 1], brick
+    k holds order[bounds[k]:bounds[k+1]]."""
+    n = len(positions)
     leaf = np.empty(n, np.int64)
-    _classify(positions, axes, planes, levels, leaf)
-    order, bounds = np.empty(n, np.int64), np.empty(len(boxes) + 1, np.int64)
-    _sort_by_leaf(leaf, len(boxes), order, bounds)
+    _classify(positions, axes, planes, n_leaves.bit_length() - 1, leaf)
+    order, bounds = np.empty(n, np.int64), np.empty(n_leaves + 1, np.int64)
+    _sort_by_leaf(leaf, n_leaves, order, bounds)
+    return order, bounds
+
+
+def kd_split(positions: np.ndarray, radius: float, levels: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Order particles by brick: returns order [n] int64, boxes [2**levels, 2, 3] (m) and
+    bounds [2**levels + 1]: brick k holds order[bounds[k]:bounds[k+1]].
+
+    positions: [n, 3] float32 or float64, m."""
+    boxes, axes, planes = _planes(positions, radius, levels)
+    order, bounds = _order_by_leaf(positions, axes, planes, len(boxes))
     return order, boxes, bounds
 
 
@@ -222,24 +282,12 @@ def _ghost_fill(positions, radius, order, bounds, boxes, offsets, out):
 
 
 def repartition(positions: np.ndarray, radius: float, n_bricks: int) -> Bricks:
-    """Bricks of `positions` [n, 3] (m) for spheres of `radius` (m); n_bricks a power of 2."""
+    """Bricks of `positions` [n, 3] (m) for spheres of `radius` (m); n_bricks a power of 2.
+    The members are classified when first asked for (Bricks.members)."""
     if n_bricks < 1 or n_bricks > MAX_BRICKS or n_bricks & (n_bricks - 1):
         raise ValueError(f"n_bricks must be a power of two in [1, {MAX_BRICKS}], got {n_bricks}")
     if len(positions) == 0:
         raise ValueError("no particles to repartition")
-    levels = n_bricks.bit_length() - 1
     pos = as_positions(positions)
-    order, boxes, bounds = kd_split(pos, radius, levels)
-    counts = np.zeros((n_bricks, n_bricks), np.int64)  # [owner, receiver]
-    _ghost_counts(pos, radius, order, bounds, boxes, counts)
-    owned = np.diff(bounds)
-    sizes = owned + counts.sum(axis=0)
-    start = np.zeros(n_bricks + 1, np.int64)
-    np.cumsum(sizes, out=start[1:])
-    members = np.empty(start[-1], np.int64)
-    for b in range(n_bricks):
-        members[start[b]:start[b] + owned[b]] = order[bounds[b]:bounds[b + 1]]
-    # ghosts of receiver c after its owned members, grouped by owner b
-    offsets = (start[:-1] + owned)[None, :] + np.cumsum(counts, axis=0) - counts
-    _ghost_fill(pos, radius, order, bounds, boxes, offsets, members)
-    return Bricks(boxes, start, members, owned)
+    boxes, axes, planes = _planes(pos, radius, n_bricks.bit_length() - 1)
+    return Bricks(boxes, pos, radius, axes, planes)

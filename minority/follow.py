@@ -33,6 +33,7 @@ from minority.follow_detect import (  # noqa: F401 - re-exported: minority.follo
     Detector,
     LiveFlow,
     observed_events,
+    slow_after_peak,
 )
 from minority.follow_forecast import (  # noqa: F401 - re-exported
     CALIBRATION,
@@ -50,10 +51,12 @@ from minority.follow_forecast import (  # noqa: F401 - re-exported
     widened,
     without_future,
 )
+from minority.gns.events import FAST_FRACTION
 from minority.protocol.spec import Spec
 
 RESERVE_SHARE = 0.25  # of the frames left, kept for later updates while re-forecasts remain
 PLAN_WALL_S = 1.0  # first guess of the planning's wall time after the rollout, s
+FORECAST_WALL_S = 5.0  # first guess of a re-forecast's wall time, snapshots in to spec put, s
 QUEUE_MESSAGES = 65536  # messages queued for the follower's thread at most
 
 
@@ -70,7 +73,7 @@ class FollowOptions:
 @dataclass
 class Update:
     update: int
-    kind: str  # "shift" or "forecast"
+    kind: str  # "shift", "forecast" or "end" (the windows ended after the fast phase)
     reason: str
     at_t_s: float  # the run's time (latest Stats) when it was put, s
     wall_s: float  # its cost: the re-forecast's wall time (0 for a shift), s
@@ -103,6 +106,7 @@ class Follower:
         self.updates: list[Update] = []
         self.frames = 0  # rendered so far (the server's Timing messages)
         self._plan_wall = PLAN_WALL_S  # the last re-forecast's planning wall time, s
+        self._forecast_wall = FORECAST_WALL_S  # the last re-forecast's wall time, s
         self._planned: tuple = (None, None, 0)  # the last plan(): (from_s, rate, frames left)
         self._q: queue.Queue = queue.Queue(QUEUE_MESSAGES)
         self.dropped = 0  # messages dropped on a full queue
@@ -113,6 +117,7 @@ class Follower:
         self._snaps: dict[int, dict] = {}  # step -> {rank: chunk}
         self._wanted: tuple[float, ...] = ()
         self._pending: Departure | None = None
+        self._fast_over = False  # the windows were ended after the run's fast phase
         self.ended = False
 
     def _on(self, kind: str):
@@ -193,6 +198,7 @@ class Follower:
     def _step(self) -> None:
         """A complete Stats step: look for a departure unless snapshots are awaited; retry
         snapshots the run passed without sending."""
+        self._end_after_fast_phase()
         if self._wanted:
             if self.flow.now_s > self._wanted[-1] + 10 * self.o.interval_s:
                 self._request_snapshots(self._pending, retry=True)
@@ -204,6 +210,27 @@ class Follower:
         if d is not None:
             self._pending = d
             self._request_snapshots(d)
+
+    def _end_after_fast_phase(self) -> None:
+        """Once: the run slow after its fast phase (two Stats steps in a row, see
+        slow_after_peak) while the spec in force has frames ahead: its windows end now (the
+        snapshots awaited kept), an "end" update. Frames go where the motion is fast: the
+        prediction's longer fast phase, or its deceleration to rest, would spend them after
+        the critical window."""
+        now = self.flow.now_s
+        if self._fast_over or not slow_after_peak(self.flow, steps=2):
+            return
+        if not any(w.t_end_s is None or w.t_end_s > now
+                   for v in self.spec.views for w in v.schedule):
+            return
+        self._fast_over = True
+        spec = Spec.from_dict({**without_future(self.spec, now),
+                               "snapshots": list(self._wanted)})
+        scale = self.flow.scale()
+        self._put(spec, Update(len(self.updates) + 1, "end",
+                               f"the fast phase over at {now:.3f} s: the speed scale "
+                               f"{scale[-1]:.3g} m/s, under half its peak {scale.max():.3g} m/s",
+                               now, 0.0))
 
     def _request_snapshots(self, d: Departure, retry: bool = False) -> None:
         from minority.protocol import keys
@@ -226,9 +253,28 @@ class Follower:
                        end_s=self.scene.duration_s, snapshots=list(self._wanted))
         if d.kind == "regions" and not retry:  # the movers are outside: widen at once
             spec = widened(spec, self.flow.now_s, self.scene.bounds_m)
+        hold = not retry and self.holds(d)
+        if hold:  # no frame until the forecast plans them
+            spec = Spec.from_dict({**without_future(spec, self.flow.now_s),
+                                   "snapshots": list(self._wanted)})
         self._put(spec, Update(len(self.updates) + 1, "shift", d.reason, self.flow.now_s, 0.0,
                                {"shift_s": 0.0 if retry else d.shift_s, "departure": d.kind,
-                                "event": d.event, "snapshots_s": list(self._wanted)}))
+                                "event": d.event, "snapshots_s": list(self._wanted),
+                                "hold": hold}))
+
+    def holds(self, d: Departure) -> bool:
+        """Whether a departure's shift renders nothing new (the moved timeline would spend
+        frames where the motion is slow): the run past its fast phase (slow_after_peak), or
+        an event late while the kinetic energy rises again and the run is slow (its speed
+        scale under FAST_FRACTION of its peak so far: when its fast phase comes is what the
+        prediction got wrong) and the re-forecast, which plans the frames, can land before
+        the run's end."""
+        if slow_after_peak(self.flow):
+            return True
+        scale, ke = self.flow.scale(), np.array(self.flow.ke)
+        rising = len(ke) >= 3 and int(np.argmax(ke)) >= len(ke) - 2
+        return bool(d.kind == "late" and rising and scale[-1] < FAST_FRACTION * scale.max()
+                    and self.lands_s(self.flow.now_s) < self.scene.duration_s)
 
     def _chunk(self, chunk) -> None:
         if not self._wanted or "displacement" not in chunk.fields:
@@ -255,14 +301,25 @@ class Follower:
         """(from_s, frames) of a re-forecast about to be planned: the run's time when its
         spec will be adopted, s (the newest Stats, caught up, plus the planning's expected
         wall time at the run's progress rate, plus a stats interval), and the frames left
-        of the budget, less RESERVE_SHARE of them while more re-forecasts may follow."""
+        of the budget, less RESERVE_SHARE of them while another re-forecast may follow and
+        land before the run's end (`lands_s`)."""
         self._catch_up()
         rate = self.flow.rate() or 0.0
         from_s = float(self.flow.now_s + rate * self._plan_wall + self.o.interval_s)
         left = self.budget_total - self.frames
-        more = sum(u.kind == "forecast" for u in self.updates) + 1 < self.o.max_updates
+        more = (sum(u.kind == "forecast" for u in self.updates) + 1 < self.o.max_updates
+                and self.lands_s(from_s) < self.scene.duration_s)
         self._planned = (from_s, rate, left)
         return from_s, left - (round(RESERVE_SHARE * left) if more else 0)
+
+    def lands_s(self, from_s: float) -> float:
+        """The run's time (s) a re-forecast asked for at from_s (s) would be adopted: the
+        snapshots' lead and span, then the last re-forecast's wall time at the run's
+        progress rate, and a stats interval."""
+        c1 = int(self.model.config.input_velocities) + 1 if self.model is not None else 6
+        span = self.o.snapshot_lead_s + (c1 - 1) * float(self.stats["frame_interval_s"])
+        rate = self.flow.rate() or 0.0
+        return from_s + span + rate * self._forecast_wall + self.o.interval_s
 
     def check_rollout(self) -> None:
         """Between a re-forecast's rollout chunks: catch up with the run; TooLate once it
@@ -270,7 +327,9 @@ class Follower:
         as of a large scene, must not blind the follower until the run ends)."""
         if self._catch_up():
             d = self.detector.check(self.spec, self.flow)
-            if d is not None:
+            # a late event says the shift's guess was wrong: the forecast in flight replaces
+            # it; the run doing what no prediction had (early, regions) makes it stale
+            if d is not None and d.kind != "late":
                 raise Superseded(d)
         end = self.scene.duration_s - float(self.stats["frame_interval_s"])
         if self.flow.now_s >= end:
@@ -295,6 +354,7 @@ class Follower:
             return
         wall = time.perf_counter() - t0
         self._plan_wall = float(info.get("plan_s", self._plan_wall))
+        self._forecast_wall = wall
         from_s, rate, left = self._planned
         k = len(self.updates) + 1
         spec = Spec.from_dict({**spec.to_dict(), "run": self.run_id, "provenance": {
@@ -302,6 +362,7 @@ class Follower:
             "from_t_s": snaps[0].time_s, "forecast_s": wall,
             "budget_total_frames": self.budget_total, "frames_before": self.frames}})
         self.detector.armed_s = self.flow.now_s + 2 * self.o.interval_s
+        self.detector.new_prediction()
         self._put(spec, Update(k, "forecast", d.reason, self.flow.now_s, wall,
                                {"from_t_s": snaps[0].time_s, "frames_left": left,
                                 "adopt_from_s": from_s, "rate_s_per_s": rate,
@@ -312,9 +373,9 @@ class Follower:
         from minority.protocol import keys
         from minority.protocol.session import CONTROL_QOS, put
 
-        if u.kind == "shift":
+        if u.kind != "forecast":  # a shift or an end
             spec = Spec.from_dict({**spec.to_dict(), "provenance": {
-                **spec.provenance, "reason": u.reason, "kind": "shift", "update": u.update,
+                **spec.provenance, "reason": u.reason, "kind": u.kind, "update": u.update,
                 "from_t_s": u.at_t_s, "forecast_s": 0.0}})
             self.detector.armed_s = self.flow.now_s + 2 * self.o.interval_s
         self._adopt(spec)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from minority.gns.events import EVENT_NAMES, fast_windows
+from minority.gns.events import EVENT_NAMES, FAST_FRACTION, fast_windows
 from minority.protocol.flow import (
     MOVING_SPEED_FRACTION,
     SPEED_QUANTILE,
@@ -129,6 +129,17 @@ def observed_events(t: np.ndarray, scale: np.ndarray, ke: np.ndarray,
     return out
 
 
+def slow_after_peak(flow: LiveFlow, steps: int = 1) -> bool:
+    """Whether the run is past its fast phase: its kinetic-energy peak seen (fallen below
+    PEAK_FALL of it, as observed_events reads the peak) and its speed scale under
+    FAST_FRACTION of its peak so far at the last `steps` Stats steps."""
+    if len(flow.ke) < steps + 1:
+        return False
+    ke, scale = np.array(flow.ke), flow.scale()
+    return bool(ke.max() > 0 and ke[-1] < PEAK_FALL * ke.max()
+                and (scale[-steps:] < FAST_FRACTION * scale.max()).all())
+
+
 @dataclass(frozen=True)
 class Departure:
     kind: str  # "early", "late" or "regions"
@@ -140,13 +151,19 @@ class Departure:
 
 class Detector:
     """When the run leaves its spec's predictions (see the module docstring). Each (kind,
-    event) is acted on once; motion outside the regions at most twice; regions are judged
+    event) is acted on once per prediction (`new_prediction` forgets them: a re-forecast's
+    event missed again is a new departure); motion outside the regions at most twice
+    altogether; regions are judged
     only on Stats after `armed_s` (the ranks measured them with an older spec before)."""
 
     def __init__(self, interval_s: float = 0.005):
         self.interval_s = interval_s
         self.acted: set[tuple[str, str | None]] = set()
         self.armed_s = -1.0
+
+    def new_prediction(self) -> None:
+        """A re-forecast's events are in force: their departures are acted on anew."""
+        self.acted = {a for a in self.acted if a[0] == "regions"}
 
     def check(self, spec: Spec, flow: LiveFlow) -> Departure | None:
         if not flow.time_s:

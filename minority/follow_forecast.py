@@ -21,6 +21,9 @@ from minority.protocol.spec import Spec
 
 WIDEN = 0.25  # a regions departure grows the regions in use by this share of their size
 CALIBRATION = (0.5, 2.0)  # bounds of the run / forecast speed ratio at the join
+TREND_S = 0.025  # a run speeding up at the join: its growth rate over this stretch, s
+TREND_GROWTH = 0.1  # ... once its speed scale grew by this share over it
+G_M_S2 = 9.81  # gravity, m/s^2
 
 
 def shifted(spec: Spec, shift_s: float, seen: dict[str, float], now_s: float | None = None,
@@ -29,7 +32,8 @@ def shifted(spec: Spec, shift_s: float, seen: dict[str, float], now_s: float | N
     events in `seen` put at their observed times (s), and `changes` to its JSON fields.
     end_s (the run's end, s) with now_s (the run's time, s): a timeline moved past the end
     is squeezed into [now_s, end_s] (window times after now_s and cadences scaled alike, so
-    the frames stay as many), events put no later than the end."""
+    the frames stay as many), events put no later than the end, and those not in `seen`
+    no earlier than now_s."""
     d = spec.to_dict()
     move = lambda x: None if x is None else max(0.0, x + shift_s)  # noqa: E731
     windows = [w for v in d["views"] for w in v["schedule"]]
@@ -46,9 +50,11 @@ def shifted(spec: Spec, shift_s: float, seen: dict[str, float], now_s: float | N
     for e in d["events"]:
         at = seen.get(e["name"])
         delta = (at - e["time_s"]) if at is not None else shift_s
+        # an event not seen by now_s has not happened: it is not put before now_s
+        floor = now_s if at is None and now_s is not None else 0.0
         for key in ("time_s", "earliest_s", "latest_s"):
             if key in e:
-                e[key] = max(0.0, e[key] + delta)
+                e[key] = max(floor, e[key] + delta)
                 if end_s is not None:
                     e[key] = min(e[key], end_s)
     d.update(changes)
@@ -148,12 +154,40 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
     return out
 
 
+def speeding_up(t: np.ndarray, scale: np.ndarray, ke: np.ndarray,
+                until_s: float) -> float | None:
+    """The growth rate (1/s) of the run's speed scale over the TREND_S before until_s (s)
+    when the run is speeding up then: its kinetic energy at its largest so far and its speed
+    scale grown by at least TREND_GROWTH over that stretch; else None. t, scale, ke [k]:
+    the run's Stats (s, m/s, mean |v|^2)."""
+    k = np.flatnonzero(t <= until_s + 1e-9)
+    if len(k) < 3:
+        return None
+    last = k[-1]
+    tail = k[t[k] >= t[last] - TREND_S - 1e-9]
+    if len(tail) < 3 or ke[last] < ke[:last + 1].max() or scale[tail[0]] <= 0:
+        return None
+    if scale[last] < (1.0 + TREND_GROWTH) * scale[tail[0]]:
+        return None
+    rate = np.polyfit(t[tail] - t[last], np.log(np.maximum(scale[tail], 1e-12)), 1)[0]
+    return float(rate) if rate > 0 else None
+
+
 def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
-                  c1: int) -> tuple[dict[str, float], float, float]:
+                  c1: int) -> tuple[dict[str, float], float, float, np.ndarray]:
     """The run's events (s) on its observed Stats up to the rollout's last history frame
     joined to the rollout's series after it (speeds at its frames' times, scaled by the
-    run / rollout speed-scale ratio at the join, within CALIBRATION), that ratio, and the
-    end of the joined series' last fast window (speed scale >= half its peak), s."""
+    run / rollout speed-scale ratio at the join, within CALIBRATION), that ratio, the end
+    of the joined series' last fast window (speed scale >= half its peak), s, and the
+    joined speed scale at the rollout's frames [len(rollout)] (m/s; the run's, linearly
+    interpolated, up to the join).
+    A run speeding up at the join (`speeding_up`) that the rollout has slowing at once (its
+    scaled speed after the join never above the run's there: a model outside what it
+    learnt, e.g. a column creeping before it fails) is joined to its own trend instead: its
+    speed scale growing at its rate until the run's end, at most the free-fall speed from
+    the top of the material (sqrt(2 g h), h its height at the join, m), and its runout
+    start is the start of the fast window that holds its peak (the trend's peak is a guess
+    from below: an earlier, smaller motion is not the runout)."""
     sp = speeds(rollout, dt, centered=True)  # [frames, m] m/s
     r_t = t0_s + np.arange(len(sp)) * dt
     r_scale = np.quantile(sp, SPEED_QUANTILE, axis=1)
@@ -167,28 +201,45 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     gns_s = float(r_scale[1:c1 - 1].mean()) if c1 > 2 else float(r_scale[c1 - 1])
     ratio = float(np.clip(run_s / gns_s, *CALIBRATION)) if run_s > 1e-6 and gns_s > 1e-6 else 1.0
     after = r_t > (t[past][-1] if past.any() else -1.0)
+    f_scale, f_ke = ratio * r_scale[after], ratio ** 2 * r_ke[after]
+    rate = speeding_up(t, scale, ke, t_join) if past.any() else None
+    trend = rate is not None and after.any() and f_scale.max() <= scale[past][-1]
+    if trend:
+        z = rollout[c1 - 1][:, 2]
+        cap = max(np.sqrt(2 * G_M_S2 * float(z.max() - z.min())), scale[past][-1])
+        grow = np.exp(rate * (r_t[after] - t[past][-1]))
+        f_scale = np.minimum(scale[past][-1] * grow, cap)
+        f_ke = ke[past][-1] * (f_scale / scale[past][-1]) ** 2
     tt = np.r_[t[past], r_t[after]]
-    e = events_from_series(tt, np.r_[scale[past], ratio * r_scale[after]],
-                           np.r_[ke[past], ratio ** 2 * r_ke[after]])
+    e = events_from_series(tt, np.r_[scale[past], f_scale], np.r_[ke[past], f_ke])
     fast = fast_windows(tt, e.speed_scale_m_s)
+    if trend:  # the run past anything it did before: its fast phase is the trend's
+        fast = [w for w in fast if w[1] >= e.peak_s - 1e-9] or fast
     start = fast[0][0] if fast else e.peak_s  # as minority score reads the runout start
     at = {"failure_onset": e.onset_s, "runout_start": start, "peak_motion": e.peak_s,
           "runout_end": e.runout_end_s}
     # what the run already showed, by the online rules, over the joined series' reading
-    return ({**at, **observed_events(t, scale, ke, float(ratio * r_scale.max()))}, ratio,
-            float(fast[-1][1]) if fast else e.peak_s)
+    ref = max(float(ratio * r_scale.max()), float(f_scale.max(initial=0.0)))
+    joined = np.r_[np.interp(r_t[~after], t, scale) if len(t) else r_scale[~after], f_scale]
+    return ({**at, **observed_events(t, scale, ke, ref)}, ratio,
+            float(fast[-1][1]) if fast else e.peak_s, joined)
 
 
 class _Segment(Oracle):
     """The oracle of a rollout that starts mid-run: frame 0 of `positions` is at t0_s (s);
     the windows follow the run's joined events `at` (absolute s), none before from_s (s:
     when the spec will be adopted); displacement is measured from the initial positions x0
-    [m, 3] (m). Its spec is in the segment's time: `absolute` moves it onto the run's."""
+    [m, 3] (m); speed_scale_m_s [frames] (m/s; default the rollout's own): where its
+    frames go (the fast phase its windows are cut at, the cadence). Its spec is in the
+    segment's time: `absolute` moves it onto the run's."""
 
     def __init__(self, positions, dt, bounds_m, spacing_m, options, t0_s: float,
-                 at: dict[str, float], x0: np.ndarray, from_s: float | None = None):
+                 at: dict[str, float], x0: np.ndarray, from_s: float | None = None,
+                 speed_scale_m_s: np.ndarray | None = None):
         super().__init__(positions, dt, bounds_m, spacing_m, options)
         self.t0, self.at = t0_s, at
+        if speed_scale_m_s is not None:  # the joined series: cadence and fast phase follow it
+            self.scale = self.envelope = np.asarray(speed_scale_m_s, dtype=np.float64)
         self.from_s = t0_s if from_s is None else max(t0_s, from_s)
         d = np.linalg.norm(self.positions - x0[None], axis=2)
         self.displacement = (float(d.min()), float(d.max()))
@@ -277,7 +328,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     if from_s > scene.duration_s - dt:
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
-    at, ratio, fast_end = joined_events(flow, t0, dt, traj, c1)
+    at, ratio, fast_end, joined = joined_events(flow, t0, dt, traj, c1)
     # frames go where the motion is fast: none when the fast phase is over by then (the
     # joined forecast's, and the run's newest speed scale under half its peak so far: a
     # run still speeding up is not over whatever the rollout says), or the budget spent
@@ -292,7 +343,8 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
                             colormap=v0["colormap"] if isinstance(v0["colormap"], str)
                             else OracleOptions.colormap,
                             occlusion_cull=all(v.occlusion_cull for v in spec.views))
-    seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0, from_s)
+    seg = _Segment(traj, dt, scene.bounds_m, spacing, options, t0, at, x0, from_s,
+                   speed_scale_m_s=joined)
     new = seg.absolute(seg.spec())
     if rest:  # the spec in force, its windows ended at from_s, with the forecast's events
         new = Spec.from_dict({**without_future(spec, from_s), "events": new.to_dict()["events"],

@@ -158,6 +158,12 @@ def test_a_timeline_shifted_past_the_run_end_is_squeezed_into_what_is_left():
     assert max(e.time_s for e in s.events) == pytest.approx(1.0)
     inside = shifted(spec(), 0.1, {}, now_s=0.3, end_s=1.0).views[0].schedule[0]
     assert (inside.t_start_s, inside.t_end_s, inside.every_s) == pytest.approx((0.3, 0.5, 0.05))
+    # events not seen by now are not put in the past (the runout end late at 0.55 s, the
+    # peak not seen: moved by 0.1 s it would be at 0.4 s)
+    times = {e.name: e.time_s for e in shifted(spec(), 0.1, {"failure_onset": 0.19},
+                                               now_s=0.55, end_s=1.0).events}
+    assert times == pytest.approx({"failure_onset": 0.19, "runout_start": 0.55,
+                                   "peak_motion": 0.55, "runout_end": 0.6})
 
 
 def test_the_progress_rate_is_simulated_over_wall_time_of_the_latest_stats():
@@ -195,6 +201,11 @@ def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates()
     assert from_s == pytest.approx(0.1 + 0.1 * 1.0 + 0.005)  # + the planning's wall time
     assert type(from_s) is float and type(frames) is int  # JSON in the spec's provenance
     assert frames == 20 - 5  # 20 left, a quarter kept
+    # another re-forecast (its snapshots 35 ms, then 5 s of wall at 0.1 s/s) lands at 0.75 s
+    assert f.lands_s(from_s) == pytest.approx(from_s + 0.035 + 0.5 + 0.005)
+    f._forecast_wall = 8.0  # ... but at 1.05 s after a slower one: past the run's end, all
+    assert f.plan()[1] == 20
+    f._forecast_wall = 5.0
     f.updates = [type("U", (), {"kind": "forecast"})()] * 2  # the last re-forecast: all
     assert f.plan()[1] == 20
 
@@ -266,7 +277,7 @@ def test_a_follower_reforecasts_from_snapshots_and_server_and_rank_follow(
 
     follower = Follower(client_factory(), RUN, None, {"frame_interval_s": FRAME_S,
                                                       "particle_spacing_m": 0.02},
-                        Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
+                        Scene(np.array([[0, 1.0]] * 3), 30.0, 100.0),  # long: a reserve is kept
                         FollowOptions(ranks=1, wait_s=5.0), log=io.StringIO(), forecast=stub)
     follower.fetch_spec()
     thread = threading.Thread(target=follower.run, kwargs={"timeout_s": 60.0})
@@ -458,3 +469,173 @@ def test_a_departure_while_the_gns_rolls_abandons_the_stale_forecast():
     assert shift.kind == "shift" and shift.detail["event"] == "failure_onset"
     assert f._wanted and f._wanted[0] > 0.13 and session.puts
     assert "abandoned" in f.log.getvalue()
+
+
+# --- a run past what the model learnt (friction_45: a column that creeps, then fails) ----------
+def creep_then_fail(t: float) -> float:
+    """Speed (m/s): a first settling (0.1 m/s at 0.02 s, at rest by 0.07 s), then a creep
+    from 0.2 s growing tenfold every 0.2 s: faster than the settling from 0.54 s on."""
+    first = 0.1 * max(0.0, 1.0 - abs(t - 0.02) / 0.05)
+    return first + (0.002 * 10 ** ((t - 0.2) / 0.2) if t >= 0.2 else 0.0) + 1e-4
+
+
+def rollout_of(speed_of_t, t0_s: float, end_s: float, n: int = 27) -> np.ndarray:
+    """[frames, n, 3] (m): n particles of a 0.1 m block all moving along x at speed_of_t(t)
+    (m/s), one frame every FRAME_S from t0_s to end_s."""
+    t = t0_s + np.arange(round((end_s - t0_s) / FRAME_S) + 1) * FRAME_S
+    x = np.cumsum([speed_of_t(s) * FRAME_S for s in t])
+    return lattice(3, 0.05)[None] + x[:, None, None] * np.array([1.0, 0.0, 0.0])
+
+
+def test_a_run_speeding_up_past_a_rollout_at_rest_is_joined_to_its_own_trend():
+    from minority.follow import joined_events
+
+    flow = flow_of(creep_then_fail, 0.6)
+    t0 = 0.6 - 5 * FRAME_S
+    rests = rollout_of(lambda t: creep_then_fail(t) if t <= 0.6 else 1e-4, t0, 0.7)
+    at, _, fast_end, _ = joined_events(flow, t0, FRAME_S, rests, 6)
+    # tenfold in 0.2 s to the run's end: the peak at the end, the runout from half of it on
+    half = 0.6 + 0.2 * np.log10(0.5 * creep_then_fail(0.7) / creep_then_fail(0.6))
+    assert at["peak_motion"] == pytest.approx(0.7) and fast_end == pytest.approx(0.7)
+    # (the rate read through the Stats' speed histogram: its bins are 26 % apart)
+    assert at["runout_start"] == pytest.approx(half, abs=3 * FRAME_S)
+    assert at["runout_end"] == pytest.approx(0.7) and at["failure_onset"] < 0.02
+    # a longer run: at most the free fall from the block's top (0.1 m: 1.4 m/s, by 0.74 s)
+    at, _, fast_end, _ = joined_events(flow, t0, FRAME_S, rollout_of(
+        lambda t: creep_then_fail(t) if t <= 0.6 else 1e-4, t0, 0.9), 6)
+    assert 0.7 < at["peak_motion"] < 0.75 and fast_end == pytest.approx(0.9)
+    # a rollout that goes on speeding up is believed: its peak, then its rest
+    fails = rollout_of(lambda t: creep_then_fail(min(t, 0.7)) if t <= 0.72 else 1e-4, t0, 0.75)
+    at, _, _, _ = joined_events(flow, t0, FRAME_S, fails, 6)
+    assert at["peak_motion"] == pytest.approx(0.7, abs=2 * FRAME_S) and at["runout_end"] < 0.75
+    # a run slowing at the join is joined to the rollout as before (its settling at 0.02 s)
+    early = flow_of(creep_then_fail, 0.04)
+    at, _, _, _ = joined_events(early, 0.015, FRAME_S,
+                                rollout_of(creep_then_fail, 0.015, 0.75), 6)
+    assert at["peak_motion"] < 0.05
+
+
+def test_an_event_missed_again_after_a_reforecast_is_a_new_departure():
+    late = flow_of(collapse(0.19, 0.7), 0.58)
+    det = Detector()
+    assert det.check(spec(), late).event == "runout_end"
+    assert det.check(spec(), late) is None  # acted on once per prediction
+    moved = Spec.from_dict({**spec().to_dict(), "events": [
+        {"name": "runout_end", "time_s": 0.52, "tolerance_s": 0.052}]})
+    assert det.check(moved, late) is None
+    det.new_prediction()  # a re-forecast put runout_end at 0.52 s: missed again at 0.58 s
+    d = det.check(moved, late)
+    assert d.kind == "late" and d.event == "runout_end"
+
+
+def follower_at(speeds_of_t, until_s: float, duration_s: float = 1.0):
+    """A Follower (no network) of spec() that has read Stats of a run whose 100 particles
+    move at speeds_of_t(t) ([100] m/s) until until_s, 5 ms of run per 0.25 s of wall
+    (0.02 s/s)."""
+    f = Follower(_Session(), RUN, None, {"frame_interval_s": FRAME_S,
+                                         "particle_spacing_m": 0.02},
+                 Scene(np.array([[0, 1.0]] * 3), 30.0, duration_s),
+                 FollowOptions(ranks=1), log=io.StringIO())
+    f._adopt(spec())
+    for step in range(0, round(until_s / DT) + 1, 5):
+        f.flow.add(stats_at(step, speeds_of_t(step * DT)), wall_s=0.05 * step)
+    return f
+
+
+def settle_then_creep(t: float) -> np.ndarray:
+    """[100] speeds (m/s): 10 particles settling (0.1 m/s at 0.02 s, at rest by 0.07 s),
+    then all creeping from 0.2 s, 0.04 m/s at 0.45 s: more kinetic energy than the
+    settling's from 0.35 s on, a speed scale under half of its."""
+    v = np.full(100, 1e-4 + (0.16 * (t - 0.2) if t >= 0.2 else 0.0))
+    v[:10] += 0.1 * max(0.0, 1.0 - abs(t - 0.02) / 0.05)
+    return v
+
+
+def uniform(speed_of_t):
+    return lambda t: np.full(100, speed_of_t(t))
+
+
+def test_a_late_event_while_the_run_is_slow_holds_the_frames_for_the_reforecast():
+    from minority.follow import Departure
+
+    late_peak = Departure("late", "peak_motion", 0.45, 0.15, "no peak_motion yet")
+    f = follower_at(settle_then_creep, 0.45)  # speeding up again, slow
+    assert f.lands_s(0.45) == pytest.approx(0.45 + 0.035 + 0.02 * 5.0 + 0.005)
+    f._request_snapshots(late_peak)
+    shift = f.updates[-1]
+    assert shift.kind == "shift" and shift.detail["hold"]
+    windows = [w for v in f.spec.views for w in v.schedule]
+    assert max(w.t_end_s for w in windows) <= 0.45 + 1e-9  # no frame until the forecast
+    assert f.spec.snapshots == f._wanted and len(f._wanted) == 6
+    # in its fast phase, or with no time left for a re-forecast: the moved timeline renders
+    fast = follower_at(uniform(collapse(0.2, 0.8)), 0.45)
+    fast._request_snapshots(late_peak)
+    assert not fast.updates[-1].detail["hold"]
+    assert max(w.t_end_s for v in fast.spec.views for w in v.schedule) > 0.45
+    short = follower_at(settle_then_creep, 0.45, duration_s=0.55)
+    short._request_snapshots(late_peak)
+    assert not short.updates[-1].detail["hold"]
+    # past its fast phase (slowing to rest), any departure holds
+    done = follower_at(uniform(collapse(0.1, 0.3)), 0.28)
+    done._request_snapshots(Departure("regions", None, 0.28, 0.0, "outside"))
+    assert done.updates[-1].detail["hold"]
+
+
+def test_the_windows_end_once_when_the_fast_phase_is_over():
+    f = follower_at(uniform(collapse(0.1, 0.3)), 0.22)  # past the peak, still fast
+    f._end_after_fast_phase()
+    assert not f.updates
+    for step in (225, 230, 235, 240, 245, 250, 255, 260, 265, 270, 275, 280):
+        f.flow.add(stats_at(step, uniform(collapse(0.1, 0.3))(step * DT)), wall_s=0.05 * step)
+    f._end_after_fast_phase()  # 0.275 and 0.28 s under half the peak speed
+    end = f.updates[-1]
+    assert end.kind == "end" and "fast phase over at 0.280 s" in end.reason
+    assert f.spec.provenance["kind"] == "end" and f.spec.provenance["update"] == 1
+    assert max(w.t_end_s for v in f.spec.views for w in v.schedule) == pytest.approx(0.28)
+    f._end_after_fast_phase()
+    assert len(f.updates) == 1  # once
+
+
+def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land():
+    """A late event seen between the rollout's chunks says the shift's guess was wrong,
+    which the forecast in flight replaces: it is not abandoned."""
+    from minority.follow import Departure
+
+    stats = {"frame_interval_s": FRAME_S, "particle_spacing_m": 0.02}
+
+    def rolls(model, stats_, old, flow, snaps, scene, plan, check):
+        for _ in range(3):
+            check()
+        return Spec.from_dict({**old.to_dict(), "snapshots": []}), {"plan_s": 0.1}
+
+    f = Follower(_Session(), RUN, None, stats, Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
+                 FollowOptions(ranks=2), log=io.StringIO(), forecast=rolls)
+    f._adopt(spec())
+    run = collapse(0.19, 0.7)  # the flow still moving at the predicted rest (0.5 s)
+    for step in range(0, 581, 5):
+        for rank in range(2):
+            f._q.put(("stats", stats_at(step, np.full(100, run(step * DT)), rank=rank).encode(),
+                      10.0 + step * 0.01))
+    f._pending = Departure("regions", None, 0.1, 0.0, "outside")
+    f._forecast([Snapshot(0.11, np.zeros((1, 3)), np.zeros((1, 3)))])
+    assert [u.kind for u in f.updates] == ["forecast"] and "abandoned" not in f.log.getvalue()
+    assert f.flow.now_s == pytest.approx(0.58)  # caught up, the late runout end seen
+
+
+def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
+    """A rollout at rest joined to a run speeding up: the frames follow the joined speed
+    scale (speed^4), most of them at the end, not evenly as the resting rollout would."""
+    from minority.gns.oracle import OracleOptions
+
+    from minority.follow import _Segment
+
+    x0 = lattice(4, 0.05)
+    rest = np.repeat(x0[None], 41, axis=0)  # 0.2 s of a rollout that does not move
+    t = np.arange(41) * FRAME_S
+    growing = 0.01 * np.exp(15.0 * t)  # m/s, 20-fold over the 0.2 s
+    at = {"failure_onset": 0.01, "runout_start": 0.55, "peak_motion": 0.7, "runout_end": 0.7}
+    seg = _Segment(rest, FRAME_S, np.array([[0, 1.0]] * 3), 0.05, OracleOptions(frames=60),
+                   0.5, at, x0, 0.5, speed_scale_m_s=growing)
+    top = {v.name: v for v in seg.absolute(seg.spec()).views}["top"]
+    cadence = [(w.t_start_s, w.every_s) for w in top.schedule]
+    assert cadence[-1][0] > 0.6 and cadence[-1][1] < cadence[0][1] / 3  # denser at the end

@@ -26,6 +26,7 @@ DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; no
 CHUNKS_PER_WORKER = 4  # particle chunks per thread in the binning passes
 MARGIN_NDC = 1e-6  # footprint margin against rounding at the tangent bound (NDC units)
 NO_KEYS = np.empty(0, np.int64)  # ties by particle index
+RECORD_BYTES = 64 << 20  # most bytes of binned records held at once (bands cast in groups)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -98,16 +99,19 @@ def _footprints(positions, r, f, width, height, zlo, zscale, band_rows, box, buc
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bin_fill(positions, box, bucket, zmin, band_rows, offsets, rec_id, rec_box, rec_z, rec_c):
-    """Write each chunk's references at its offsets: compact records (id, footprint, zmin,
-    center) grouped by band, front to back within a band."""
+def _bin_fill(positions, box, bucket, zmin, band_rows, b0, b1, base, offsets, rec_id, rec_box,
+              rec_z, rec_c):
+    """Write each chunk's references to bands b0 .. b1 - 1 at its offsets (less `base`, the
+    first of those bands' records): compact records (id, footprint, zmin, center) grouped by
+    band, front to back within a band."""
     n_chunks, n = offsets.shape[0], zmin.shape[0]
     for c in prange(n_chunks):
-        fill = offsets[c].copy()
+        fill = offsets[c] - base
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             if box[p, 0] <= box[p, 1] and box[p, 2] <= box[p, 3]:
                 k = np.int64(bucket[p])
-                for b in range(box[p, 2] // band_rows, box[p, 3] // band_rows + 1):
+                for b in range(max(box[p, 2] // band_rows, b0),
+                               min(box[p, 3] // band_rows + 1, b1)):
                     r = fill[b * DEPTH_BUCKETS + k]
                     fill[b * DEPTH_BUCKETS + k] += 1
                     rec_id[r] = p
@@ -128,12 +132,13 @@ def _before(keys, p, other):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _cast_bands(r2, f, width, height, band_rows, n_bands, band_start, rec_id, rec_box, rec_z,
-                rec_c, n_workers, keys, hit_t, hit_id):
+def _cast_bands(r2, f, width, height, band_rows, b0, b1, base, band_start, rec_id, rec_box,
+                rec_z, rec_c, n_workers, keys, hit_t, hit_id):
+    """Cast bands b0 .. b1 - 1, whose records start at band_start[b0] = base."""
     for w in prange(n_workers):
-        for band in range(w, n_bands, n_workers):  # interleaved: balanced across workers
+        for band in range(b0 + w, b1, n_workers):  # interleaved: balanced across workers
             row0, row1 = band * band_rows, min((band + 1) * band_rows, height) - 1
-            for k in range(band_start[band], band_start[band + 1]):
+            for k in range(band_start[band] - base, band_start[band + 1] - base):
                 p = rec_id[k]
                 ia, ib = rec_box[k, 0], rec_box[k, 1]
                 ja, jb = max(rec_box[k, 2], row0), min(rec_box[k, 3], row1)
@@ -227,11 +232,6 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
     del counts
     m = int(totals.sum())
     band_start = np.append(key_start[::DEPTH_BUCKETS], m)
-    rec_id = np.empty(m, np.int32 if n < np.iinfo(np.int32).max else np.int64)
-    rec_box, rec_z, rec_c = np.empty((m, 4), box_type), np.empty(m, np.float32), \
-        np.empty((m, 3), pos.dtype)
-    _bin_fill(pos, box, bucket, zmin, band_rows, offsets, rec_id, rec_box, rec_z, rec_c)
-    del box, bucket, zmin  # the records hold what the cast needs
     if out is None:
         out = (np.empty(width * height), np.empty(width * height, np.int32))
     hit_t, hit_id = out
@@ -241,9 +241,28 @@ def cast(positions: np.ndarray, radius: float, frame: RayFrame, width: int, heig
         keys = NO_KEYS
     elif keys.shape != (n,) or keys.dtype != np.int64:
         raise ValueError(f"keys must be int64 [{n}], got {keys.dtype} {keys.shape}")
-    _cast_bands(radius * radius, frame, width, height, band_rows, n_bands, band_start, rec_id,
-                rec_box, rec_z, rec_c, n_workers, keys, hit_t, hit_id)
-    del rec_id, rec_box, rec_z, rec_c
+    # the bands in groups of consecutive ones, each group's records at most RECORD_BYTES
+    # (unless one band alone holds more), built and cast in turn in the same buffers
+    id_type = np.int32 if n < np.iinfo(np.int32).max else np.int64
+    row_bytes = np.dtype(id_type).itemsize + 4 * np.dtype(box_type).itemsize + 4 \
+        + 3 * pos.dtype.itemsize
+    groups, b0 = [], 0
+    while b0 < n_bands:
+        b1 = b0 + 1
+        while b1 < n_bands and (band_start[b1 + 1] - band_start[b0]) * row_bytes <= RECORD_BYTES:
+            b1 += 1
+        groups.append((b0, b1))
+        b0 = b1
+    most = max(int(band_start[b1] - band_start[b0]) for b0, b1 in groups)
+    rec_id, rec_box = np.empty(most, id_type), np.empty((most, 4), box_type)
+    rec_z, rec_c = np.empty(most, np.float32), np.empty((most, 3), pos.dtype)
+    for b0, b1 in groups:
+        base = int(band_start[b0])
+        _bin_fill(pos, box, bucket, zmin, band_rows, b0, b1, base, offsets, rec_id, rec_box,
+                  rec_z, rec_c)
+        _cast_bands(radius * radius, frame, width, height, band_rows, b0, b1, base, band_start,
+                    rec_id, rec_box, rec_z, rec_c, n_workers, keys, hit_t, hit_id)
+    del rec_id, rec_box, rec_z, rec_c, box, bucket, zmin
     if metres:
         _to_metres(frame, width, height, hit_t)
     return hit_t, hit_id

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -125,11 +126,13 @@ def coarse_history(snaps: list[Snapshot], spacing_m: float) -> tuple[np.ndarray,
 
 
 def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
-                 frames: int, peak_ke: float, chunk: int = 20, check=None) -> np.ndarray:
+                 frames: int, peak_ke: float, chunk: int = 20, check=None,
+                 enough=None) -> np.ndarray:
     """[C+1+frames, m, 3] (m): the rollout from history [C+1, m, 3], chunk frames at a time,
     stopped once its mean |v|^2 has stayed below REST_FRACTION of max(peak_ke, its own peak)
-    for a chunk (the rest filled with its last frame: at rest). check(): called between
-    chunks, raises to abandon the rollout (the run ended or departed again meanwhile)."""
+    for a chunk, or enough(rollout so far) says so (the rest filled with its last frame: at
+    rest). check(): called between chunks, raises to abandon the rollout (the run ended or
+    departed again meanwhile)."""
     from minority.gns.rollout import rollout
 
     c1 = history.shape[0]
@@ -145,6 +148,8 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
         ke = (v * v).sum(axis=2).mean(axis=1)
         peak = max(peak, float(ke.max()))
         if done >= 2 * chunk and ke[-5:].mean() < REST_FRACTION * peak:
+            break
+        if enough is not None and done < frames and enough(np.concatenate(traj)):
             break
         if check is not None and done < frames:
             check()
@@ -173,8 +178,16 @@ def speeding_up(t: np.ndarray, scale: np.ndarray, ke: np.ndarray,
     return float(rate) if rate > 0 else None
 
 
+class Joined(NamedTuple):
+    at: dict[str, float]  # the events, s
+    ratio: float  # the run / rollout speed-scale ratio at the join
+    fast_end_s: float  # the end of the joined series' last fast window, s
+    speed_scale_m_s: np.ndarray  # [len(rollout)] the joined series at the rollout's frames
+    trend: bool  # the run's own trend replaced the rollout after the join
+
+
 def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
-                  c1: int) -> tuple[dict[str, float], float, float, np.ndarray]:
+                  c1: int) -> Joined:
     """The run's events (s) on its observed Stats up to the rollout's last history frame
     joined to the rollout's series after it (speeds at its frames' times, scaled by the
     run / rollout speed-scale ratio at the join, within CALIBRATION), that ratio, the end
@@ -221,8 +234,8 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     # what the run already showed, by the online rules, over the joined series' reading
     ref = max(float(ratio * r_scale.max()), float(f_scale.max(initial=0.0)))
     joined = np.r_[np.interp(r_t[~after], t, scale) if len(t) else r_scale[~after], f_scale]
-    return ({**at, **observed_events(t, scale, ke, ref)}, ratio,
-            float(fast[-1][1]) if fast else e.peak_s, joined)
+    return Joined({**at, **observed_events(t, scale, ke, ref)}, ratio,
+                  float(fast[-1][1]) if fast else e.peak_s, joined, bool(trend))
 
 
 class _Segment(Oracle):
@@ -322,13 +335,14 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     peak_ke = max(flow.ke) if flow.ke else 0.0
     traj = roll_to_rest(model, history, scene.friction_deg, scene.bounds_m, frames,
                         peak_ke * dt * dt,  # the run's peak mean |v|^2, as (m per frame)^2
-                        check=check)
+                        check=check,  # a rollout the run's trend replaces: no further
+                        enough=lambda so_far: joined_events(flow, t0, dt, so_far, c1).trend)
     t_plan = time.perf_counter()
     from_s, frames_left = plan()  # the run has moved on while the GNS rolled
     if from_s > scene.duration_s - dt:
         raise TooLate(f"it would be adopted at {from_s:.3f} s, the run ends at "
                       f"{scene.duration_s:.3f} s")
-    at, ratio, fast_end, joined = joined_events(flow, t0, dt, traj, c1)
+    at, ratio, fast_end, joined, trend = joined_events(flow, t0, dt, traj, c1)
     # frames go where the motion is fast: none when the fast phase is over by then (the
     # joined forecast's, and the run's newest speed scale under half its peak so far: a
     # run still speeding up is not over whatever the rollout says), or the budget spent

@@ -493,26 +493,27 @@ def test_a_run_speeding_up_past_a_rollout_at_rest_is_joined_to_its_own_trend():
     flow = flow_of(creep_then_fail, 0.6)
     t0 = 0.6 - 5 * FRAME_S
     rests = rollout_of(lambda t: creep_then_fail(t) if t <= 0.6 else 1e-4, t0, 0.7)
-    at, _, fast_end, _ = joined_events(flow, t0, FRAME_S, rests, 6)
+    at, _, fast_end, _, trend = joined_events(flow, t0, FRAME_S, rests, 6)
     # tenfold in 0.2 s to the run's end: the peak at the end, the runout from half of it on
     half = 0.6 + 0.2 * np.log10(0.5 * creep_then_fail(0.7) / creep_then_fail(0.6))
-    assert at["peak_motion"] == pytest.approx(0.7) and fast_end == pytest.approx(0.7)
+    assert trend and at["peak_motion"] == pytest.approx(0.7) and fast_end == pytest.approx(0.7)
     # (the rate read through the Stats' speed histogram: its bins are 26 % apart)
     assert at["runout_start"] == pytest.approx(half, abs=3 * FRAME_S)
     assert at["runout_end"] == pytest.approx(0.7) and at["failure_onset"] < 0.02
     # a longer run: at most the free fall from the block's top (0.1 m: 1.4 m/s, by 0.74 s)
-    at, _, fast_end, _ = joined_events(flow, t0, FRAME_S, rollout_of(
+    at, _, fast_end, _, trend = joined_events(flow, t0, FRAME_S, rollout_of(
         lambda t: creep_then_fail(t) if t <= 0.6 else 1e-4, t0, 0.9), 6)
-    assert 0.7 < at["peak_motion"] < 0.75 and fast_end == pytest.approx(0.9)
+    assert trend and 0.7 < at["peak_motion"] < 0.75 and fast_end == pytest.approx(0.9)
     # a rollout that goes on speeding up is believed: its peak, then its rest
     fails = rollout_of(lambda t: creep_then_fail(min(t, 0.7)) if t <= 0.72 else 1e-4, t0, 0.75)
-    at, _, _, _ = joined_events(flow, t0, FRAME_S, fails, 6)
-    assert at["peak_motion"] == pytest.approx(0.7, abs=2 * FRAME_S) and at["runout_end"] < 0.75
+    at, _, _, _, trend = joined_events(flow, t0, FRAME_S, fails, 6)
+    assert not trend and at["runout_end"] < 0.75
+    assert at["peak_motion"] == pytest.approx(0.7, abs=2 * FRAME_S)
     # a run slowing at the join is joined to the rollout as before (its settling at 0.02 s)
     early = flow_of(creep_then_fail, 0.04)
-    at, _, _, _ = joined_events(early, 0.015, FRAME_S,
-                                rollout_of(creep_then_fail, 0.015, 0.75), 6)
-    assert at["peak_motion"] < 0.05
+    at, _, _, _, trend = joined_events(early, 0.015, FRAME_S,
+                                       rollout_of(creep_then_fail, 0.015, 0.75), 6)
+    assert not trend and at["peak_motion"] < 0.05
 
 
 def test_an_event_missed_again_after_a_reforecast_is_a_new_departure():
@@ -639,3 +640,21 @@ def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
     top = {v.name: v for v in seg.absolute(seg.spec()).views}["top"]
     cadence = [(w.t_start_s, w.every_s) for w in top.schedule]
     assert cadence[-1][0] > 0.6 and cadence[-1][1] < cadence[0][1] / 3  # denser at the end
+
+
+def test_a_rollout_the_trend_replaces_stops_after_its_first_chunk():
+    from minority.gns.train import load_checkpoint
+
+    from minority.demo import CHECKPOINT
+    from minority.follow import roll_to_rest
+
+    model, ckpt = load_checkpoint(CHECKPOINT)
+    h = float(ckpt["stats"]["particle_spacing_m"])
+    x0 = lattice(4, h)
+    history = np.repeat(x0[None], int(model.config.input_velocities) + 1, axis=0)
+    seen = []
+    out = roll_to_rest(model, history, 30.0, np.array([[0, 0.4], [0, 0.2], [0, 0.2]]), 60,
+                       1.0, chunk=10, enough=lambda so_far: seen.append(len(so_far)) or True)
+    c1 = len(history)
+    assert seen == [c1 + 10] and out.shape == (c1 + 60, len(x0), 3)
+    assert (out[c1 + 10:] == out[c1 + 9]).all()  # the rest at its last frame

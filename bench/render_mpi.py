@@ -22,7 +22,10 @@ much: a process that imported everything and rendered a tiny step, measured afte
 such run that compiled every kernel, so no peak includes compilation).
 
 "render_mpi_ratio" lines compare N = 2 with N = 1 per step and size (total time, the
-composite's share of the N = 2 total, peak RSS, and peak RSS above each one's baseline).
+composite's share of the N = 2 total, peak RSS, peak RSS above each one's baseline, and
+rss_if_halved_2_over_1: the ratio an N = 2 rank would reach holding exactly half of what the
+N = 1 process holds above its baseline, on top of its own baseline: the floor's limit, which
+falls as the per-particle bytes grow and rises as they shrink).
 
 "render_mpi_model" lines: each step's time per step for N = 1 .. 64 ranks at 1024x768 from
 its N = 2 costs (bench.render_mpi.costs: per particle of receive, exchange, setup plus
@@ -342,7 +345,11 @@ def main(argv: list[str] | None = None) -> None:
                      "composite_share_2": round(two["composite_s"] / two["total_s"], 3),
                      "rss_2_over_1": round(max(two["peak_rss_bytes"])
                                            / one["peak_rss_bytes"][0], 3),
-                     "rss_above_baseline_2_over_1": round(above, 3)}
+                     "rss_above_baseline_2_over_1": round(above, 3),
+                     "rss_if_halved_2_over_1": round(
+                         (max(base[2]["peak_rss_bytes"]) + (one["peak_rss_bytes"][0]
+                                                            - base[1]["peak_rss_bytes"][0]) / 2)
+                         / one["peak_rss_bytes"][0], 3)}
             print(json.dumps(ratio), flush=True)
         for line in model(rows[kind, 2, w0], rows[kind, 2, w1], base[2]):
             print(json.dumps(line), flush=True)

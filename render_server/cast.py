@@ -9,6 +9,11 @@ rank breaks ties as the one-process render of all of them does). Spheres are bin
 image row bands by a counting sort; bands are disjoint, so threads never write the same
 pixel. Work is linear in the particle count and in the footprint area, not in pixels times
 traversal depth. Rays are the ones of `camera.primary_rays`, computed by the same code.
+
+Memory: 13 bytes per sphere (its footprint, depth bucket and nearest depth) and the binned
+references (28 bytes each with float32 positions), built for a group of consecutive bands
+at a time so that at most RECORD_BYTES of them exist at once: a pixel's hit depends only on
+the references of its own band, so the groups' order changes nothing.
 """
 
 from __future__ import annotations

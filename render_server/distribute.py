@@ -448,7 +448,8 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
         return Partition(positions, given, keys, np.array(comm.allgather(n), np.int64), tree,
                          t1 - t0, time.perf_counter() - t1)
     me, ranks = comm.rank, comm.size
-    dest = classify(positions, keys, tree, np.int32)
+    rank_type = np.int16 if ranks <= np.iinfo(np.int16).max else np.int32
+    dest = classify(positions, keys, tree, rank_type)  # 2 bytes a row
     chunk_counts = np.zeros((min(CHUNKS, max(n, 1)), ranks), np.int64)
     _chunk_counts(dest, chunk_counts)
     send_counts = chunk_counts.sum(axis=0)
@@ -464,7 +465,7 @@ def exchange(comm, positions: np.ndarray, fields: dict[str, np.ndarray],
     # order: the particles leaving, grouped by destination, then (from n - kept) those staying
     group = np.cumsum(leaving) - leaving
     group[me] = n - kept
-    order = np.empty(n, np.int64)
+    order = np.empty(n, np.int32 if n <= np.iinfo(np.int32).max else np.int64)  # 4 bytes a row
     _order(dest, group[None, :] + np.cumsum(chunk_counts, axis=0) - chunk_counts, order)
     del dest
     arrays = [positions, keys] + [given[k] for k in names]

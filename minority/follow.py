@@ -118,6 +118,7 @@ class Follower:
         self._wanted: tuple[float, ...] = ()
         self._pending: Departure | None = None
         self._fast_over = False  # the windows were ended after the run's fast phase
+        self._join_s = float("-inf")  # the last snapshot of the forecast in flight, s
         self.ended = False
 
     def _on(self, kind: str):
@@ -327,17 +328,26 @@ class Follower:
         as of a large scene, must not blind the follower until the run ends)."""
         if self._catch_up():
             d = self.detector.check(self.spec, self.flow)
-            # a late event says the shift's guess was wrong: the forecast in flight replaces
-            # it; the run doing what no prediction had (early, regions) makes it stale
-            if d is not None and d.kind != "late":
+            if d is not None and self._stale(d):
                 raise Superseded(d)
         end = self.scene.duration_s - float(self.stats["frame_interval_s"])
         if self.flow.now_s >= end:
             raise TooLate(f"the run reached {self.flow.now_s:.3f} s while the GNS rolled")
 
+    def _stale(self, d: Departure) -> bool:
+        """Whether a departure seen while the GNS rolls makes the forecast in flight stale:
+        motion outside the regions, or an event early that happened after its snapshots.
+        One before them the forecast reads from the run's Stats at its join; a late one
+        says the shift's guess was wrong, which the forecast replaces."""
+        if d.kind == "regions":
+            return True
+        e = {e.name: e for e in self.spec.events}.get(d.event)
+        return d.kind == "early" and (e is None or e.time_s + d.shift_s > self._join_s)
+
     def _forecast(self, snaps: list[Snapshot]) -> None:
         d = self._pending
         t0 = time.perf_counter()
+        self._join_s = snaps[-1].time_s if snaps else float("-inf")  # the rollout's start
         self._planned = (None, None, self.budget_total - self.frames)
         try:
             spec, info = self.forecast(self.model, self.stats, self.spec, self.flow, snaps,

@@ -3,7 +3,8 @@ summed per step) and when it leaves what its spec predicted (`Detector`).
 
 Departures:
 - an event early: observed before its predicted interval (the ensemble's [earliest_s,
-  latest_s], else time_s +- tolerance_s), by more than one stats interval;
+  latest_s], else time_s +- tolerance_s), by more than one stats interval, unless a later
+  event was seen inside its own interval;
 - an event late: the interval has passed and the event has not happened (the flow still
   moving at the predicted rest is the runout end late);
 - motion outside the regions: under 99 % of the moving particles inside the open regions
@@ -172,12 +173,23 @@ class Detector:
         predicted = spec.provenance.get("predicted", {})
         seen = observed_events(t, scale, ke, float(predicted.get("peak_speed_m_s", 0.0)))
         now, slack = float(t[-1]), self.interval_s
+
+        def interval(e) -> tuple[float, float]:
+            return e.interval_s or (e.time_s - e.tolerance_s, e.time_s + e.tolerance_s)
+
+        # the latest event seen inside its interval: the run was on the prediction then, so
+        # an event early before it (the runout start, read only once the peak is known)
+        # says nothing of what is to come
+        back = max((seen[e.name] for e in spec.events if e.name in seen
+                    and interval(e)[0] - slack <= seen[e.name] <= interval(e)[1] + slack),
+                   default=-1.0)
         for e in spec.events:
             if e.name not in EVENT_NAMES:
                 continue
-            lo, hi = e.interval_s or (e.time_s - e.tolerance_s, e.time_s + e.tolerance_s)
+            lo, hi = interval(e)
             got = seen.get(e.name)
-            if got is not None and got < lo - slack and ("early", e.name) not in self.acted:
+            if (got is not None and got < lo - slack and got > back
+                    and ("early", e.name) not in self.acted):
                 self.acted.add(("early", e.name))
                 return Departure("early", e.name, now, got - e.time_s,
                                  f"{e.name} at {got:.3f} s, before the predicted "

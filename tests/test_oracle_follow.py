@@ -118,6 +118,22 @@ def test_an_early_onset_is_a_departure_with_its_shift():
     assert d.shift_s < -0.05 and "before the predicted" in d.reason
 
 
+def test_an_event_early_before_one_on_time_is_no_departure():
+    """The runout start (read once the peak is known) early, the peak on time: the run was
+    back on the prediction by then; with the peak late too, it is a departure."""
+    def fast_rise(peak_s):  # onset at 0.19 s, half the peak speed by 0.2 s, peak at peak_s
+        return lambda t: (0.0 if t < 0.19 else 0.5 * min(1.0, (t - 0.19) / 0.01)
+                          + 0.5 * float(np.clip((t - 0.2) / (peak_s - 0.2), 0, 1))
+                          - float(np.clip((t - peak_s) / 0.15, 0, 1))) + 1e-3
+    on_time = flow_of(fast_rise(0.3), 0.34)
+    seen = observed_events(np.array(on_time.time_s), on_time.scale(), np.array(on_time.ke),
+                           1.0)
+    assert seen["runout_start"] < 0.22 and seen["peak_motion"] == pytest.approx(0.3, abs=0.01)
+    assert Detector().check(spec(), on_time) is None
+    d = Detector().check(spec(), flow_of(fast_rise(0.36), 0.4))  # the peak late as well
+    assert d is not None and d.kind == "early" and d.event == "runout_start"
+
+
 def test_a_run_on_time_is_no_departure_and_a_flow_moving_at_the_predicted_rest_is():
     on_time = flow_of(collapse(0.19, 0.47), 0.55)
     det = Detector()
@@ -597,30 +613,40 @@ def test_the_windows_end_once_when_the_fast_phase_is_over():
     assert len(f.updates) == 1  # once
 
 
-def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land():
+@pytest.mark.parametrize("early", [False, True])
+def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land(early):
     """A late event seen between the rollout's chunks says the shift's guess was wrong,
-    which the forecast in flight replaces: it is not abandoned."""
+    which the forecast in flight replaces; an event early, seen once the peak is known,
+    that happened before its snapshots is in the Stats it joins: it is not abandoned."""
     from minority.follow import Departure
 
     stats = {"frame_interval_s": FRAME_S, "particle_spacing_m": 0.02}
 
+    seen = []
+
     def rolls(model, stats_, old, flow, snaps, scene, plan, check):
         for _ in range(3):
             check()
+        seen.extend(f.detector.acted)  # the departure, seen between the chunks
         return Spec.from_dict({**old.to_dict(), "snapshots": []}), {"plan_s": 0.1}
 
     f = Follower(_Session(), RUN, None, stats, Scene(np.array([[0, 1.0]] * 3), 30.0, 1.0),
                  FollowOptions(ranks=2), log=io.StringIO(), forecast=rolls)
-    f._adopt(spec())
-    run = collapse(0.19, 0.7)  # the flow still moving at the predicted rest (0.5 s)
-    for step in range(0, 581, 5):
+    # the flow still moving at the predicted rest (0.5 s), or its runout start at 0.2 s
+    # read once the kinetic energy has fallen from its peak (0.25 s) 10 %
+    f._adopt(spec() if not early else Spec.from_dict({**spec().to_dict(), "events": [
+        {"name": "failure_onset", "time_s": 0.02, "tolerance_s": 0.005},
+        {"name": "runout_start", "time_s": 0.23, "tolerance_s": 0.005}]}))
+    run = collapse(0.19, 0.7) if not early else collapse(0.02, 0.48)
+    for step in range(0, 581 if not early else 291, 5):
         for rank in range(2):
             f._q.put(("stats", stats_at(step, np.full(100, run(step * DT)), rank=rank).encode(),
                       10.0 + step * 0.01))
     f._pending = Departure("regions", None, 0.1, 0.0, "outside")
-    f._forecast([Snapshot(0.11, np.zeros((1, 3)), np.zeros((1, 3)))])
+    f._forecast([Snapshot(0.2, np.zeros((1, 3)), np.zeros((1, 3)))])
     assert [u.kind for u in f.updates] == ["forecast"] and "abandoned" not in f.log.getvalue()
-    assert f.flow.now_s == pytest.approx(0.58)  # caught up, the late runout end seen
+    assert f.flow.now_s == pytest.approx(0.58 if not early else 0.29)  # caught up
+    assert seen == [("early", "runout_start") if early else ("late", "runout_end")]
 
 
 def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():

@@ -124,16 +124,30 @@ def _relaunch_serve(ranks: int, argv: list[str]) -> int:
     if mpiexec is None:
         return fail("serve", f"--ranks needs mpiexec, none found next to {sys.executable} or "
                              f"on PATH: {NO_MPI}")
-    cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "minority", *argv]
+    cmd = [str(mpiexec), *_keep_ranks_alive(mpiexec), "-n", str(ranks), sys.executable, "-m",
+           "minority", *argv]
     proc = subprocess.Popen(cmd, env={**RELAUNCH_ENV, **__import__("os").environ})
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda s, _: proc.send_signal(s))
     return proc.wait()
 
 
+def _keep_ranks_alive(mpiexec) -> list[str]:
+    """Hydra's flag that keeps the other ranks alive when one exits with an error status
+    (minority.rank_guard turns a rank's death by a signal into one), so that rank 0 can
+    record the failure and close its log; nothing for another launcher."""
+    try:
+        version = subprocess.run([str(mpiexec), "--version"], capture_output=True, text=True,
+                                 timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return ["-disable-auto-cleanup"] if "HYDRA" in version else []
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     import zenoh
 
+    from minority import rank_guard
     from minority.protocol.errors import SpecError
     from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
     from minority.protocol.spec import Spec
@@ -154,6 +168,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         return fail("serve", exc, BAD_INPUT)
     if not under_launcher() and (args.ranks or 1) > 1:
         return _relaunch_serve(args.ranks, args.argv)  # the same command under mpiexec
+    if under_launcher() and rank_guard.wanted():
+        # this command again, as the guard's child; the guard exits with its status
+        rank_guard.run(args.argv, grace_s=args.rank_timeout + 5.0)
     if under_launcher():
         try:
             from mpi4py import MPI

@@ -2,8 +2,9 @@
 a real `minority sim tiny` on 2 ranks against `minority serve --ranks N` on loopback, frames
 pixel-identical to one process (N = 1, 2, 3) on every step both rendered, the sharded log
 replayed identically to the one-process log; a stuck render rank (SIGSTOP: rank 0 records an
-error event, closes its log complete and ends the job), a killed render rank and a killed
-rank 0 (SIGKILL: MPICH ends every rank, the logs read to their last complete chunk); the
+error event, closes its log complete and ends the job), a killed render rank (SIGKILL:
+its guard keeps the job alive, rank 0 records the error and closes its log complete) and a
+killed rank 0 (the others close their shards and end the job); the
 pieces (shard paths and merging, tie keys, shares) in one process.
 
 Each server and sim is a subprocess with bounded waits (process exits, its "serving" line).
@@ -172,29 +173,56 @@ def test_a_stuck_render_rank_ends_the_run_with_an_error_event_and_a_complete_log
     assert any("render rank 1" in e.message for e in events if e.kind == "error")
 
 
-@pytest.mark.parametrize("victim", [1, 0])
-def test_a_killed_rank_ends_every_rank_and_the_logs_stay_readable(tmp_path, victim):
-    """SIGKILL: MPICH ends the whole job (none hangs); each log reads to its last chunk."""
-    proc, text = start_server(tmp_path, 2, free_port())
-    log = tmp_path / "out" / "tiny.mcap"
+def kill_when_logging(tmp: Path, victim: int, *extra: str):
+    """A 2-rank server, SIGKILL to render rank `victim` once rank 0's log holds the spec;
+    the server's exit status, its stderr and both ranks' pids."""
+    proc, text = start_server(tmp, 2, free_port(), "--rank-timeout", "2", *extra)
+    log = tmp / "out" / "tiny.mcap"
+    pids = {rank: pid_of(text, rank) for rank in (0, 1)}
     try:
         deadline = time.monotonic() + 60
         while not logged_specs(log):  # the writer completes its first MCAP chunk (0.5 s)
             assert time.monotonic() < deadline
             time.sleep(0.1)
-        os.kill(pid_of(text, victim), signal.SIGKILL)
+        os.kill(pids[victim], signal.SIGKILL)
         status = proc.wait(60)
     finally:
         stop(proc)
-    assert status != 0
-    for rank in (0, 1):  # no rank survives its peer
-        pid = pid_of(text, rank)
+    for pid in pids.values():  # no rank outlives the job (nor a guarded server its guard)
         assert not Path(f"/proc/{pid}").exists() or "Z" in Path(
             f"/proc/{pid}/stat").read_text().split()[2]
+    return status, (tmp / "serve.err").read_text()
+
+
+def test_a_killed_render_rank_is_recorded_by_rank_0_in_a_complete_log(tmp_path):
+    """SIGKILL to rank 1: its guard exits with 137 instead of dying, hydra keeps rank 0
+    alive (-disable-auto-cleanup), rank 0's watchdog records the error and closes its log."""
+    status, err = kill_when_logging(tmp_path, 1)
+    assert status != 0
+    assert re.search(r"render rank 1 \(pid \d+\) was killed by SIGKILL", err)
+    assert "render rank 1 sent nothing for 2 s" in err
+    log = tmp_path / "out" / "tiny.mcap"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        events = [r.decode() for r in read_log(log, ["minority/*/event"])]
+    assert not [w for w in caught if "tiny.mcap:" in str(w.message)]  # rank 0's log complete
+    kinds = [e.kind for e in events]
+    assert kinds[0] == "run_start" and kinds[-1] == "run_end"
+    assert any("render rank 1" in e.message for e in events if e.kind == "error")
+
+
+def test_a_killed_rank_0_ends_the_others_and_their_shards_are_complete(tmp_path):
+    """SIGKILL to rank 0: rank 1 hears nothing for --rank-timeout, closes its shard and ends
+    the job; rank 0's own log reads to its last complete MCAP chunk."""
+    status, err = kill_when_logging(tmp_path, 0)
+    assert status != 0
+    assert re.search(r"render rank 0 \(pid \d+\) was killed by SIGKILL", err)
+    log = tmp_path / "out" / "tiny.mcap"
     assert logged_specs(log) == 1
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", LogTruncatedWarning)
-        list(read_log(shard_path(log, 1)))  # readable (its header at least)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        list(read_log(shard_path(log, 1)))
+    assert not caught, [str(w.message) for w in caught]
 
 
 def logged_specs(log: Path) -> int:
@@ -269,3 +297,16 @@ def test_shares_and_keys_follow_the_one_process_rows():
     assert list(ids[order]) == [1, 2, 11, 12, 21, 22, 31, 32, 13, 23]
     assert min(a2.keys[a2.fresh:]) > 1 << 40 and a2.cached == 5 and b2.cached == 5
     assert isinstance(a2.local, AssembledStep) and len(a2.local.positions) == 2 + 5
+
+
+def test_a_rank_is_guarded_only_under_a_launcher_of_several_ranks(monkeypatch):
+    from minority import rank_guard
+
+    for name in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "SLURM_NTASKS", rank_guard.GUARDED_ENV):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("PMI_SIZE", "1")
+    assert not rank_guard.wanted()
+    monkeypatch.setenv("PMI_SIZE", "3")
+    assert rank_guard.wanted() == sys.platform.startswith("linux")
+    monkeypatch.setenv(rank_guard.GUARDED_ENV, "1")  # the guarded child itself
+    assert not rank_guard.wanted()

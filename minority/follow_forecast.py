@@ -127,8 +127,9 @@ def coarse_history(snaps: list[Snapshot], spacing_m: float) -> tuple[np.ndarray,
 
 def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.ndarray,
                  frames: int, peak_ke: float, chunk: int = 20, check=None,
-                 enough=None) -> np.ndarray:
-    """[C+1+frames, m, 3] (m): the rollout from history [C+1, m, 3], chunk frames at a time,
+                 enough=None) -> tuple[np.ndarray, int]:
+    """([C+1+frames, m, 3] (m), frames rolled): the rollout from history [C+1, m, 3], chunk
+    frames at a time,
     stopped once its mean |v|^2 has stayed below REST_FRACTION of max(peak_ke, its own peak)
     for a chunk, or enough(rollout so far) says so (the rest filled with its last frame: at
     rest). check(): called between chunks, raises to abandon the rollout (the run ended or
@@ -156,7 +157,7 @@ def roll_to_rest(model, history: np.ndarray, friction_deg: float, bounds_m: np.n
     out = np.concatenate(traj)
     if done < frames:
         out = np.concatenate([out, np.repeat(out[-1:], frames - done, axis=0)])
-    return out
+    return out, done
 
 
 def speeding_up(t: np.ndarray, scale: np.ndarray, ke: np.ndarray,
@@ -333,7 +334,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
     t0 = snaps[0].time_s
     frames = max(1, round((scene.duration_s - t0) / dt) - (c1 - 1))
     peak_ke = max(flow.ke) if flow.ke else 0.0
-    traj = roll_to_rest(model, history, scene.friction_deg, scene.bounds_m, frames,
+    traj, rolled = roll_to_rest(model, history, scene.friction_deg, scene.bounds_m, frames,
                         peak_ke * dt * dt,  # the run's peak mean |v|^2, as (m per frame)^2
                         check=check,  # a rollout the run's trend replaces: no further
                         enough=lambda so_far: joined_events(flow, t0, dt, so_far, c1).trend)
@@ -364,6 +365,7 @@ def reforecast(model, stats: dict, spec: Spec, flow: LiveFlow, snaps: list[Snaps
         new = Spec.from_dict({**without_future(spec, from_s), "events": new.to_dict()["events"],
                               "provenance": new.provenance})
     info = {"particles": int(history.shape[1]), "rollout_frames": int(len(traj) - c1),
+            "rolled_frames": int(rolled), "rollout_s": t_plan - t_start,
             "calibration": float(ratio), "from_s": float(from_s), "fast_end_s": fast_end,
             "frames_planned": 0 if rest else int(options.frames),
             "plan_s": time.perf_counter() - t_plan, "forecast_s": time.perf_counter() - t_start}

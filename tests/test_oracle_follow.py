@@ -419,6 +419,8 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames, slo
     new, info = reforecast(model, stats, spec(), flow, snaps,
                            Scene(np.array([[0, 0.4], [0, 0.04], [0, 0.2]]), 30.0, 0.4), plan)
     assert asked and info["from_s"] == pytest.approx(t0 + 0.04) and info["particles"] == 128
+    assert 0 < info["rolled_frames"] <= info["rollout_frames"]
+    assert 0 < info["rollout_s"] <= info["forecast_s"]
     assert Spec.from_dict(new.to_dict()) == new and new.encode()
     windows = [w for v in new.views for w in v.schedule]
     # events only when the budget is spent, or the fast phase over by the adoption (the
@@ -679,8 +681,9 @@ def test_a_rollout_the_trend_replaces_stops_after_its_first_chunk():
     x0 = lattice(4, h)
     history = np.repeat(x0[None], int(model.config.input_velocities) + 1, axis=0)
     seen = []
-    out = roll_to_rest(model, history, 30.0, np.array([[0, 0.4], [0, 0.2], [0, 0.2]]), 60,
-                       1.0, chunk=10, enough=lambda so_far: seen.append(len(so_far)) or True)
+    out, rolled = roll_to_rest(model, history, 30.0, np.array([[0, 0.4], [0, 0.2], [0, 0.2]]),
+                               60, 1.0, chunk=10,
+                               enough=lambda so_far: seen.append(len(so_far)) or True)
     c1 = len(history)
-    assert seen == [c1 + 10] and out.shape == (c1 + 60, len(x0), 3)
+    assert seen == [c1 + 10] and rolled == 10 and out.shape == (c1 + 60, len(x0), 3)
     assert (out[c1 + 10:] == out[c1 + 9]).all()  # the rest at its last frame

@@ -25,12 +25,10 @@ declares a rank dead after `rank_timeout_s` without one: it publishes an error e
 the run (run_end, the log closed complete) and ends the job without waiting for the
 collective its render thread may be stuck in, through MPI_Abort, which ends every rank (a
 stuck one too). A rank k > 0 that hears nothing from rank 0 for `rank_timeout_s` closes its
-shard and calls MPI_Abort. A rank killed with SIGKILL is another matter with MPICH (measured
-with the mpich wheel's hydra, with and without -disable-auto-cleanup): the library aborts the
-job at once, every rank is SIGKILLed within about a second, before any heartbeat is missed,
-and the logs end at their last complete MCAP chunk (the writers complete one at least every
-0.5 s; `minority log repair` makes indexed copies). Not -disable-auto-cleanup: with it MPICH
-still kills the job when a rank is killed, and MPI_Abort leaves a stuck rank running.
+shard and calls MPI_Abort. A rank killed by a signal is noticed the same way: under a
+launcher each rank is a guard process with the server as its child (minority/rank_guard.py),
+so hydra (with -disable-auto-cleanup) or srun (--kill-on-bad-exit=0) sees an exit status,
+not a signal, and does not end the other ranks before rank 0 has recorded the failure.
 
 The pieces: render_server.mpi_share (the messages, held chunks, the rank cache and a
 rank's share of a step), render_server.mpi_worker (ranks k > 0), and here rank 0's

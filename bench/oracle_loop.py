@@ -198,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=120, help="frame budget, all views")
     ap.add_argument("--out", type=Path, default=Path("data/oracle_loop"),
                     help="working directory (scenes, specs, runs)")
+    ap.add_argument("--new-spec", action="store_true",
+                    help="derive each open-loop spec again (after a change to gns/oracle.py) "
+                         "instead of reusing OUT/SCENE/spec.json")
     ap.add_argument("--threads", type=int, default=1, help="threads per process")
     ap.add_argument("--timeout", type=float, default=1800.0, help="wall s per run at most")
     args = ap.parse_args(argv)
@@ -210,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         scene = d / f"{p.name}.toml"
         scene.write_text(scene_toml(cfg, p))
         spec = d / "spec.json"
-        if not spec.is_file():
+        if args.new_spec or not spec.is_file():
             spec = open_spec(scene, d, args.frames, args.threads)
         for loop in args.loops:
             log, wall = run_once(scene, spec, d / loop, loop == "closed", args.threads,

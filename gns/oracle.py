@@ -164,8 +164,9 @@ class Oracle:
 
     # --- windows --------------------------------------------------------------------
     def windows(self) -> dict[str, tuple[float, float]]:
-        """Initiation: onset to the fastest motion (the column failing); runout: from the
-        start of the fast phase to rest (both padded by a frame, within the rollout). An
+        """Initiation: onset to the fastest motion (the column failing), padded by a frame;
+        runout: from the start of the fast phase to rest padded by a frame (within the
+        rollout). An
         ensemble's: the union over its members, widened to cover the events' intervals
         (the initiation's from the onset's earliest to the peak's latest, the runout's from
         the runout start's earliest to the runout end's latest)."""
@@ -188,7 +189,9 @@ class Oracle:
         pad = self.dt
         failing = max(e.peak_s, e.onset_s + self.dt)  # an early kinetic-energy spike aside
         return {"initiation": (max(0.0, e.onset_s - pad), min(failing + pad, e.duration_s)),
-                "runout": (max(0.0, fast_start - pad), min(end + pad, e.duration_s))}
+                # from the fast phase's first frame: a frame before it is outside the
+                # critical window unless the run is early, when it is one of many inside
+                "runout": (fast_start, min(end + pad, e.duration_s))}
 
     def region(self, t0: float, t1: float) -> list[np.ndarray]:
         """[3, 2] boxes (m) holding the particles moving in [t0, t1]: one per slab along the

@@ -268,7 +268,7 @@ class _Segment(Oracle):
             a = min(max(a, first), end)
             return a, min(max(b, a + pad), end)
 
-        runout = adopted(max(0.0, e["runout_start"] - pad),
+        runout = adopted(e["runout_start"],  # from its first frame, as gns.oracle's
                          max(e["runout_end"], e["runout_start"] + pad) + pad)
         failing = max(e["peak_motion"], e["failure_onset"] + pad)
         if e["peak_motion"] <= pad or failing + pad <= first + pad:

@@ -57,6 +57,8 @@ def test_events_and_windows_are_found(oracle):
     w = oracle.windows()
     # the fast phase (speed >= half its peak) is the middle half of [START, STOP]
     assert w["runout"][0] == pytest.approx(START + 0.25 * (STOP - START), abs=2 * DT)
+    # from the fast phase's first frame (no frame before it, outside the critical window)
+    assert w["runout"][0] == pytest.approx(oracle.fast_phase()[0])
     assert w["initiation"][0] <= e.onset_s and w["initiation"][1] >= w["runout"][0]
     lo, hi = oracle.displacement
     assert lo == 0.0 and hi == pytest.approx(np.hypot(TRAVEL, 0.8 * 0.2), rel=0.02)

@@ -110,3 +110,24 @@ def test_object_order_cast_random_cameras(seed):
         _, ids = cast(positions, radius, ray_frame(cam, WIDTH, HEIGHT), WIDTH, HEIGHT)
         _, ids_ref = trace_brute_force(origins, dirs, positions, radius)
         np.testing.assert_array_equal(ids, ids_ref)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "column"])
+def test_casting_the_bands_in_small_groups_changes_no_hit(kind, monkeypatch):
+    """A record budget of a few rows' worth casts the image in many band groups (at 8M
+    particles the default budget does the same): every hit as with one group."""
+    import minority.render_server.cast as cast_module
+
+    rng = np.random.default_rng(len(kind) + 7)
+    positions, radius = scene(kind, rng)
+    positions = positions.astype(np.float32)
+    keys = rng.permutation(len(positions)).astype(np.int64)
+    for cam in CAMERAS:
+        frame = ray_frame(cam, WIDTH, HEIGHT)
+        t1, ids1 = cast(positions, radius, frame, WIDTH, HEIGHT, keys=keys)
+        monkeypatch.setattr(cast_module, "RECORD_BYTES", 4096)
+        t2, ids2 = cast(positions, radius, frame, WIDTH, HEIGHT, keys=keys)
+        monkeypatch.undo()
+        assert (ids1 >= 0).any()
+        np.testing.assert_array_equal(ids2, ids1)
+        np.testing.assert_array_equal(t2, t1)

@@ -1,19 +1,20 @@
 """deploy/slurm/minority.sbatch run end to end on this host, as Slurm would run it.
 
 Slurm is stood in for by the small executables of tests/slurm_shims/ on PATH: `scontrol
-show hostnames` (the allocation: "localhost" three times, so the first node and the rank
-"nodes" are this machine), `srun` (a job step: N tasks as N MPI ranks under the .venv's
-mpiexec; Hydra's proxies, when Hydra's `-bootstrap slurm` starts them, as given) and
-`zenohd` (a router opened with eclipse-zenoh from the job's router.json5: its TLS listener
-and access control). The script makes the certificates and configs, starts the router, the
-render server (one process, or a job step of 2 render ranks) and the 2 sim ranks of the
-400-particle `tiny` scene over mutual TLS, then stops the server and the router. Checked
-what a user would check: exit status 0, frames on disk, the MCAP log (and its shard) with
-the run's start, chunks of both sim ranks and its end, the router's rules naming the run,
-the router certificate naming the first node.
+show hostnames` (the allocation: localhost, localhost, 127.0.0.1, so the first node and
+both rank "nodes" are this machine, the rank nodes under two names), `srun` (a job step:
+N tasks as N MPI ranks under the .venv's mpiexec; Hydra's proxies, when Hydra's
+`-bootstrap slurm` starts them, as given) and `zenohd` (a router opened with eclipse-zenoh
+from the job's router.json5: its TLS listener and access control). The script makes the
+certificates and configs, starts the router, the render server (one process, or a job step
+of 2 render ranks) and the 2 sim ranks of the 400-particle `tiny` scene over mutual TLS,
+then stops the server and the router. Checked what a user would check: exit status 0,
+frames on disk, the MCAP log (and its shard) with the run's start, chunks of both sim ranks
+and its end, the router's rules naming the run, the router certificate naming the first
+node.
 
 Loopback only (free ports, TLS_PORT/LOCAL_PORT), no multicast (the configs turn scouting
-off), every wait bounded by the script's own timeout. Not covered: a real Slurm (its srun,
+off), every wait bounded (the job, JOB_TIMEOUT_S). Not covered: a real Slurm (its srun,
 its PMI plugins, several hosts)."""
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def job_env(tmp: Path, **settings: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "PMI_", "PMIX_"))}
     env.update({
         "PATH": f"{SHIMS}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}{env['PATH']}",
-        "SLURM_NNODES": "3", "SLURM_JOB_NODELIST": "localhost,localhost,localhost",
+        "SLURM_NNODES": "3", "SLURM_JOB_NODELIST": "localhost,localhost,127.0.0.1",
         "SLURM_NTASKS_PER_NODE": "1", "SLURM_JOB_ID": "4242", "SLURM_SUBMIT_DIR": str(ROOT),
         "JOB_DIR": str(tmp / "job"), "SCENE": "tiny", "SPEC": str(spec), "RANKS": "2",
         "TLS_PORT": str(free_port()), "LOCAL_PORT": str(free_port()), "DRAIN_S": "3",
@@ -174,6 +175,9 @@ def test_render_ranks_as_a_job_step(tmp_path, launcher):
         assert "--ntasks=2" in calls[0] and "--relative=0" in calls[0]  # the render ranks
     else:
         assert len(proxies) == len(calls) == 2  # one Hydra launch a step
+        # the sim's: one proxy on each rank node (each reads its id from SLURM_NODEID)
+        assert calls[1][calls[1].index("--nodelist") + 1] == "localhost,127.0.0.1"
+        assert calls[1][calls[1].index("-n") + 1] == "2"
 
 
 @pytest.mark.parametrize("settings, message", [

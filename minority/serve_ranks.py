@@ -53,7 +53,7 @@ def serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     if not listening and opts.config is None:
         listening = [DEFAULT_ENDPOINT]
     elif not listening and rank == 0:
-        listening = list(session.config.get_json("listen/endpoints") or [])
+        listening = _config_listen(opts)
     listening = ctl.bcast(listening, root=0)
     ctl.Barrier()  # rank 0 listens
     if rank > 0:
@@ -69,6 +69,19 @@ def serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     if rank > 0:
         return _worker(args, spec, ctl, draw, session)
     return _server(args, spec, ctl, draw, session)
+
+
+def _config_listen(opts) -> list[str]:
+    """The endpoints rank 0's session listens on by its --config file (none given by flag)."""
+    import json
+
+    from minority.protocol.session import Role, make_config
+
+    cfg = make_config(opts, Role.SERVER)
+    endpoints = json.loads(cfg.get_json("listen/endpoints")) or []
+    if isinstance(endpoints, dict):  # zenoh's per-mode form: {"router": [...], "peer": [...]}
+        endpoints = endpoints.get(json.loads(cfg.get_json("mode")) or "peer") or []
+    return list(endpoints)
 
 
 def _worker(args, spec, ctl, draw, session) -> int:

@@ -310,3 +310,16 @@ def test_a_rank_is_guarded_only_under_a_launcher_of_several_ranks(monkeypatch):
     assert rank_guard.wanted() == sys.platform.startswith("linux")
     monkeypatch.setenv(rank_guard.GUARDED_ENV, "1")  # the guarded child itself
     assert not rank_guard.wanted()
+
+
+@pytest.mark.parametrize("text, endpoints", [
+    ('{mode: "peer", listen: {endpoints: ["tcp/127.0.0.1:17001"]}}', ["tcp/127.0.0.1:17001"]),
+    ('{mode: "client", connect: {endpoints: ["tls/head:7448"]}}', []),  # a router's client
+])
+def test_rank_0_listens_where_its_config_file_says(tmp_path, text, endpoints):
+    from minority.protocol.session import NetworkOptions
+
+    from minority.serve_ranks import _config_listen
+
+    (tmp_path / "c.json5").write_text(text)
+    assert _config_listen(NetworkOptions(config=tmp_path / "c.json5")) == endpoints

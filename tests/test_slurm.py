@@ -180,6 +180,8 @@ def test_render_ranks_as_a_job_step(tmp_path, launcher):
     ({"SLURM_NNODES": "1"}, "needs at least 2 nodes"),
     ({"LAUNCHER": "ssh"}, "LAUNCHER must be mpiexec or srun"),
     ({"ZENOHD": "no-such-zenohd"}, "no-such-zenohd not found"),
+    ({"SERVE_RANKS": "two"}, "SERVE_RANKS must be a positive whole number, not 'two'"),
+    ({"RANKS": "0"}, "RANKS must be a positive whole number"),
 ])
 def test_refuses_what_cannot_run(tmp_path, settings, message):
     env = job_env(tmp_path, **settings)
@@ -192,3 +194,13 @@ def test_must_be_submitted_from_the_repository(tmp_path):
     env = job_env(tmp_path, SLURM_SUBMIT_DIR=str(tmp_path))
     rc, output = run_script(env, cwd=tmp_path)
     assert rc == 1 and "submit from the repository root" in output
+
+
+def test_a_server_that_does_not_start_fails_the_job(tmp_path):
+    """A server that exits before it serves: the script says so, exits 1, and stops the
+    router it started (its trap)."""
+    env = job_env(tmp_path, SERVE_ARGS="--no-such-flag")
+    rc, output = run_script(env)
+    assert rc == 1 and "minority serve exited, see" in output, output
+    assert "--no-such-flag" in (tmp_path / "job" / "serve.log").read_text()
+    assert "stopped" in (tmp_path / "job" / "zenohd.log").read_text()

@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # optional dependency groups: mpi is the MPICH wheel (`make EXTRAS=test` on a cluster whose
-# own MPI mpi4py is built against, see README.md)
+# own MPI mpi4py is built against, see deploy/README.md)
 EXTRAS ?= mpi,test
 
 .PHONY: demo test test-slow bench lint clean clean-numba gpu-train

@@ -23,7 +23,7 @@ DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not 
 # before a command that runs kernels (protocol.jitcache), never at import time
 NUMBA_PACKAGES = ("minority.sim", "minority.insitu", "minority.gns", "minority.render_server")
 NO_MPI = ("no MPI library: install the mpich wheel (pip install 'minority[mpi]', what `make` "
-          "does) or mpi4py built against your system's MPI (README.md, 'A cluster's own MPI')")
+          "does) or mpi4py built against your system's MPI (deploy/README.md, 'A cluster's own MPI')")
 
 
 def _add_network(p: argparse.ArgumentParser) -> None:

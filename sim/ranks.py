@@ -63,7 +63,7 @@ def relaunch(ranks: int, argv: list[str]) -> int:
     if mpiexec is None:
         print("minority sim: error: --ranks needs mpiexec, none found next to "
               f"{sys.executable} or on PATH: pip install 'minority[mpi]' (the mpich wheel), or "
-              "use the site's MPI (README, \"A cluster's own MPI\")", file=sys.stderr)
+              "use the site's MPI (deploy/README.md, \"A cluster's own MPI\")", file=sys.stderr)
         return 1
     env = {**RELAUNCH_ENV, **os.environ}
     cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "minority", *argv]

@@ -12,13 +12,26 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import traceback
 
 from minority.cliargs import BAD_INPUT, FAILED, parent_made
 
 
 def serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     """Rank 0: the server; ranks k > 0: workers. Returns the exit status (rank 0 exits with
-    MPI_Abort after a rank died: MPI cannot finalize with it)."""
+    MPI_Abort after a rank died: MPI cannot finalize with it). An unexpected error on any
+    rank ends the job (MPI_Abort), so no other rank waits for it in a barrier."""
+    try:
+        return _serve_ranks(args, spec, comm)
+    except Exception:
+        traceback.print_exc()
+        print(f"minority serve: render rank {comm.Get_rank()} failed (above): ending every rank",
+              file=sys.stderr, flush=True)
+        comm.Abort(FAILED)
+        return FAILED
+
+
+def _serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     import zenoh
 
     from minority.protocol.session import (

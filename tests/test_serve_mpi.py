@@ -323,3 +323,36 @@ def test_rank_0_listens_where_its_config_file_says(tmp_path, text, endpoints):
 
     (tmp_path / "c.json5").write_text(text)
     assert _config_listen(NetworkOptions(config=tmp_path / "c.json5")) == endpoints
+
+
+FAILING_RANK = """
+import sys
+from mpi4py import MPI
+import minority.render_server.daemon as daemon
+def warm_up():
+    if MPI.COMM_WORLD.Get_rank() == 1:
+        raise RuntimeError("a fault injected on rank 1")
+daemon.warm_up = warm_up
+from minority.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_an_unexpected_error_on_one_rank_ends_every_rank(tmp_path):
+    """Rank 1 raises before the first barrier: it says so and MPI_Abort ends the job (rank 0
+    would otherwise wait for it forever)."""
+    from minority.sim.ranks import mpiexec_path
+
+    (tmp_path / "spec.json").write_text(json.dumps(SPEC))
+    (tmp_path / "failing.py").write_text(FAILING_RANK)
+    env = {**ENV, "MINORITY_RANK_GUARDED": "1"}  # the ranks themselves, no guard
+    proc = subprocess.run(
+        # -disable-auto-cleanup as `serve --ranks` runs it: hydra alone would not end rank 0
+        [str(mpiexec_path()), "-disable-auto-cleanup", "-n", "2", sys.executable,
+         str(tmp_path / "failing.py"), "serve",
+         "--spec", str(tmp_path / "spec.json"), "--out", str(tmp_path / "out"),
+         "--listen", f"tcp/127.0.0.1:{free_port()}"],
+        capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode != 0
+    assert "a fault injected on rank 1" in proc.stderr
+    assert "render rank 1 failed (above): ending every rank" in proc.stderr

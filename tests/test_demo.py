@@ -97,7 +97,7 @@ def test_small_demo_runs_the_closed_loop_oracle_beside_the_server(small_demo):
     assert lines[0] == f"oracle follow: following run {RUN!r}"
     assert lines[-1].startswith("oracle follow: ") and "updates" in lines[-1]
     updates = [json.loads(line) for line in lines if line.startswith("{")]
-    assert all(u["kind"] in ("shift", "forecast") and u["reason"] for u in updates)
+    assert all(u["kind"] in ("shift", "forecast", "end") and u["reason"] for u in updates)
     logged = [s.provenance for s in log_specs(out / "run.mcap") if "update" in s.provenance]
     put = [(u["update"], u["kind"]) for u in updates]
     # the server logs each update it took (one put as the run ended may come too late)

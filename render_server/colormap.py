@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 from minority.protocol.errors import SpecError
 from minority.protocol.view import InlineColormap, check_colormap_name
-from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
 
 LUT_SIZE = 1024
 _SPACES = {"RGB": "SetColorSpaceToRGB", "HSV": "SetColorSpaceToHSV", "Lab": "SetColorSpaceToLab",
@@ -33,16 +32,23 @@ class Colormap:
     _lut: list = field(default_factory=list, compare=False, repr=False)
 
     def lut(self) -> np.ndarray:
-        """[LUT_SIZE, 3] float RGB in [0, 1] over the preset's own x range."""
+        """[LUT_SIZE, 3] float RGB in [0, 1] over the preset's own x range (the built-in
+        presets' come from TABLES, the others are sampled with VTK once)."""
         if not self._lut:
-            f = vtkColorTransferFunction()
-            getattr(f, _SPACES[self.color_space])()
-            pts = np.asarray(self.rgb_points, dtype=np.float64).reshape(-1, 4)
-            for x, r, g, b in pts:
-                f.AddRGBPoint(x, r, g, b)
-            xs = np.linspace(pts[0, 0], pts[-1, 0], LUT_SIZE)
-            self._lut.append(np.array([f.GetColor(x) for x in xs]))
+            self._lut.append(self.sample_vtk())
         return self._lut[0]
+
+    def sample_vtk(self) -> np.ndarray:
+        """[LUT_SIZE, 3] VTK's vtkColorTransferFunction of the control points, sampled."""
+        from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
+
+        f = vtkColorTransferFunction()
+        getattr(f, _SPACES[self.color_space])()
+        pts = np.asarray(self.rgb_points, dtype=np.float64).reshape(-1, 4)
+        for x, r, g, b in pts:
+            f.AddRGBPoint(x, r, g, b)
+        xs = np.linspace(pts[0, 0], pts[-1, 0], LUT_SIZE)
+        return np.array([f.GetColor(x) for x in xs])
 
     def map(self, values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
         """RGB [n, 3] float in [0, 1] of values [n] rescaled from [vmin, vmax]; values outside
@@ -95,29 +101,64 @@ def _matplotlib(name: str, paraview_name: str, samples: int = 256) -> Colormap:
     return Colormap(paraview_name, "RGB", tuple(pts.tolist()), (1.0, 0.0, 0.0))
 
 
+# The built-in presets: how each is made (VTK's or matplotlib's definition)...
+BUILTIN = {
+    "Cool to Warm": lambda: Colormap(
+        "Cool to Warm", "Diverging",
+        (0.0, 0.231373, 0.298039, 0.752941, 0.5, 0.865003, 0.865003, 0.865003,
+         1.0, 0.705882, 0.0156863, 0.14902), (1.0, 1.0, 0.0)),
+    "Grayscale": lambda: Colormap("Grayscale", "RGB", (0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0),
+                                  (1.0, 0.0, 0.0)),
+    "Viridis (matplotlib)": lambda: _matplotlib("viridis", "Viridis (matplotlib)"),
+    "Plasma (matplotlib)": lambda: _matplotlib("plasma", "Plasma (matplotlib)"),
+    "Inferno (matplotlib)": lambda: _matplotlib("inferno", "Inferno (matplotlib)"),
+    "Magma (matplotlib)": lambda: _matplotlib("magma", "Magma (matplotlib)"),
+    "Turbo": lambda: _matplotlib("turbo", "Turbo"),
+}
+# ...and what that gives, shipped (`python -m minority.render_server.colormap` writes it;
+# tests/test_render_colormap.py checks it against VTK and matplotlib): a process that renders
+# a built-in preset imports neither (about 70 MB of a render rank's resident memory)
+TABLES = Path(__file__).with_name("colormap_tables.npz")
+
+
+@cache
+def _tables() -> dict[str, np.ndarray]:
+    with np.load(TABLES) as z:
+        return {k: z[k] for k in z.files}
+
+
+def builtin_preset(name: str) -> Colormap:
+    """A built-in preset from TABLES: its control points, colours and lookup table."""
+    t = _tables()
+    meta = t[f"{name}/meta"]  # [4]: r, g, b of the NaN colour, then the colour space's index
+    cmap = Colormap(name, list(_SPACES)[int(meta[3])], tuple(t[f"{name}/points"].tolist()),
+                    tuple(meta[:3].tolist()))
+    cmap._lut.append(t[f"{name}/lut"])
+    return cmap
+
+
+def tables_of(presets: dict[str, Colormap]) -> dict[str, np.ndarray]:
+    """What TABLES holds for these presets (their luts sampled with VTK)."""
+    out = {}
+    for name, cmap in presets.items():
+        out[f"{name}/points"] = np.asarray(cmap.rgb_points, dtype=np.float64)
+        out[f"{name}/meta"] = np.array([*cmap.nan_color, list(_SPACES).index(cmap.color_space)],
+                                       dtype=np.float64)
+        out[f"{name}/lut"] = cmap.sample_vtk()
+    return out
+
+
 @cache
 def builtin_presets() -> dict[str, Colormap]:
-    maps = [
-        Colormap("Cool to Warm", "Diverging",
-                 (0.0, 0.231373, 0.298039, 0.752941, 0.5, 0.865003, 0.865003, 0.865003,
-                  1.0, 0.705882, 0.0156863, 0.14902), (1.0, 1.0, 0.0)),
-        Colormap("Grayscale", "RGB", (0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0), (1.0, 0.0, 0.0)),
-        _matplotlib("viridis", "Viridis (matplotlib)"),
-        _matplotlib("plasma", "Plasma (matplotlib)"),
-        _matplotlib("inferno", "Inferno (matplotlib)"),
-        _matplotlib("magma", "Magma (matplotlib)"),
-        _matplotlib("turbo", "Turbo"),
-    ]
-    return {m.name: m for m in maps}
+    return {name: builtin_preset(name) for name in BUILTIN}
 
 
 @lru_cache(maxsize=64)
 def preset(name: str) -> Colormap:
     """A built-in ParaView preset by its name, or a matplotlib colormap by its name (both
     checked by protocol.view.check_colormap_name)."""
-    presets = builtin_presets()
-    if name in presets:
-        return presets[name]
+    if name in BUILTIN:
+        return builtin_presets()[name]
     return _matplotlib(check_colormap_name(name, "colormap"), name)
 
 
@@ -130,3 +171,8 @@ def view_colormap(colormap: str | InlineColormap) -> Colormap:
 @lru_cache(maxsize=256)
 def _inline(colormap: InlineColormap) -> Colormap:
     return _from_inline(colormap.checked(f"colormap {colormap.name!r}"))
+
+
+if __name__ == "__main__":  # writes TABLES from VTK and matplotlib
+    np.savez_compressed(TABLES, **tables_of({n: make() for n, make in BUILTIN.items()}))
+    print(f"wrote {TABLES}")

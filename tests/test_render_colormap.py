@@ -54,3 +54,30 @@ def test_bad_presets(obj, message):
 def test_unknown_builtin_names_the_known_ones():
     with pytest.raises(SpecError, match="Cool to Warm"):
         preset("Jet (made up)")
+
+
+def test_shipped_tables_are_what_vtk_and_matplotlib_give():
+    """render_server/colormap_tables.npz is `python -m minority.render_server.colormap`'s
+    output today: the same control points, NaN colours, spaces and lookup tables, exactly."""
+    from minority.render_server.colormap import BUILTIN, TABLES, tables_of
+
+    fresh = tables_of({name: make() for name, make in BUILTIN.items()})
+    with np.load(TABLES) as shipped:
+        assert set(shipped.files) == set(fresh)
+        for key, value in fresh.items():
+            np.testing.assert_array_equal(shipped[key], value, err_msg=key)
+    for name, make in BUILTIN.items():
+        assert preset(name) == make()  # same fields (the lut is no field)
+
+
+def test_a_built_in_preset_needs_neither_vtk_nor_matplotlib():
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport numpy as np\nfrom minority.render_server.colormap import preset\n"
+            "for name in ('Cool to Warm', 'Turbo'):\n"
+            "    preset(name).map(np.linspace(0, 1, 5), 0.0, 1.0)\n"
+            "print(sorted(m for m in ('vtkmodules', 'matplotlib') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    assert preset("coolwarm").lut().shape == (1024, 3)  # any other matplotlib name: sampled

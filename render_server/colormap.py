@@ -2,8 +2,9 @@
 
 Interpolation is VTK's vtkColorTransferFunction (RGB, HSV, Lab, Diverging/Msh), the same
 code ParaView uses, sampled into a lookup table once per preset. Built-in presets: ParaView's
-default "Cool to Warm", matplotlib's perceptual maps under ParaView's names, and grayscale;
-any ParaView preset JSON file (one preset or a list) can be loaded.
+default "Cool to Warm", matplotlib's perceptual maps under ParaView's names, and grayscale,
+whose tables VTK and matplotlib made ahead of time (TABLES); any ParaView preset JSON file
+(one preset or a list) can be loaded.
 """
 
 from __future__ import annotations

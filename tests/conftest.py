@@ -139,3 +139,19 @@ def fail_call(real, at: int, exc: Exception):
         return real(*args, **kwargs)
 
     return wrapper, calls
+
+
+# two small views of sim/scenes/tiny.toml's run (tests/test_serve_mpi.py, tests/test_slurm.py)
+TINY_SPEC = {
+    "version": 2, "run": "tiny",
+    "regions": [{"name": "front", "lo_m": [0.05, -1.0, -1.0], "hi_m": [1.0, 1.0, 1.0]}],
+    "views": [
+        {"name": "side", "camera": {"position": [0.2, -1.0, 0.08],
+                                    "focal_point": [0.2, 0.02, 0.08]},
+         "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
+         "schedule": [{"every_steps": 20, "regions": ["front"]}]},
+        {"name": "top", "camera": {"position": [0.2, 0.02, 1.0], "focal_point": [0.2, 0.02, 0.0],
+                                   "view_up": [0, 1, 0], "parallel_projection": True,
+                                   "parallel_scale_m": 0.1},
+         "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
+         "decimate": 2, "schedule": [{"every_steps": 40}]}]}

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port, make_chunk, make_spec
+from conftest import TINY_SPEC, free_port, make_chunk, make_spec
 from minority.protocol.log import LogTruncatedWarning, LogWriter, read_log
 from minority.protocol.shards import shard_path, shard_paths
 from minority.render_server.assemble import AssembledStep
@@ -33,18 +33,7 @@ from PIL import Image
 
 TIMEOUT_S = 300
 ENV = {**os.environ, "NUMBA_NUM_THREADS": "1"}
-SPEC = {"version": 2, "run": "tiny",
-        "regions": [{"name": "front", "lo_m": [0.05, -1.0, -1.0], "hi_m": [1.0, 1.0, 1.0]}],
-        "views": [
-            {"name": "side", "camera": {"position": [0.2, -1.0, 0.08],
-                                        "focal_point": [0.2, 0.02, 0.08]},
-             "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
-             "schedule": [{"every_steps": 20, "regions": ["front"]}]},
-            {"name": "top", "camera": {"position": [0.2, 0.02, 1.0],
-                                       "focal_point": [0.2, 0.02, 0.0], "view_up": [0, 1, 0],
-                                       "parallel_projection": True, "parallel_scale_m": 0.1},
-             "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
-             "decimate": 2, "schedule": [{"every_steps": 40}]}]}
+SPEC = TINY_SPEC
 
 
 def start_server(tmp: Path, ranks: int, port: int, *extra: str) -> tuple[subprocess.Popen, str]:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port
+from conftest import TINY_SPEC, free_port
 from minority.protocol import EventKind
 from minority.protocol.log import read_log
 
@@ -39,19 +39,7 @@ SCRIPT = ROOT / "deploy" / "slurm" / "minority.sbatch"
 SHIMS = Path(__file__).parent / "slurm_shims"
 RUN = "tiny"
 JOB_TIMEOUT_S = 300  # the script with the server's start (its kernels may compile) and the sim
-# the spec of tests/test_serve_mpi.py: two small views of the tiny scene
-SPEC = {"version": 2, "run": RUN,
-        "regions": [{"name": "front", "lo_m": [0.05, -1.0, -1.0], "hi_m": [1.0, 1.0, 1.0]}],
-        "views": [
-            {"name": "side", "camera": {"position": [0.2, -1.0, 0.08],
-                                        "focal_point": [0.2, 0.02, 0.08]},
-             "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
-             "schedule": [{"every_steps": 20, "regions": ["front"]}]},
-            {"name": "top", "camera": {"position": [0.2, 0.02, 1.0],
-                                       "focal_point": [0.2, 0.02, 0.0], "view_up": [0, 1, 0],
-                                       "parallel_projection": True, "parallel_scale_m": 0.1},
-             "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
-             "decimate": 2, "schedule": [{"every_steps": 40}]}]}
+SPEC = TINY_SPEC
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not found")
 

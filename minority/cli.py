@@ -12,7 +12,6 @@ import argparse
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -31,9 +30,36 @@ def _add_network(p: argparse.ArgumentParser) -> None:
     add_network_args(p)
 
 
-def _stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM (a clean stop: logs closed, sessions closed)."""
-    stop = threading.Event()
+class SignalStop:
+    """Set by SIGINT or SIGTERM: a clean stop (logs closed, sessions closed); `wait` and
+    `is_set` as a threading.Event's. Not an Event: a signal handler runs in the main thread
+    between two bytecodes, possibly inside Event.wait while it holds the event's lock, and
+    Event.set would then wait for that lock forever (`serve --ranks 2` hung so on Ctrl-C)."""
+
+    POLL_S = 0.05
+
+    def __init__(self) -> None:
+        self._set = False
+
+    def set(self) -> None:
+        self._set = True
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def wait(self, timeout: float | None = None) -> bool:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._set:
+            left = self.POLL_S if deadline is None else min(self.POLL_S,
+                                                             deadline - time.monotonic())
+            if left <= 0:
+                break
+            time.sleep(left)
+        return self._set
+
+
+def _stop_on_signals() -> SignalStop:
+    stop = SignalStop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     return stop
@@ -118,7 +144,7 @@ def _serve_parser(sub) -> None:
 def _relaunch_serve(ranks: int, argv: list[str]) -> int:
     """`python -m minority ARGV` under the venv's mpiexec -n RANKS; SIGINT and SIGTERM are
     passed on to it."""
-    from minority.sim.ranks import RELAUNCH_ENV, mpiexec_path
+    from minority.sim.launcher import RELAUNCH_ENV, mpiexec_path
 
     mpiexec = mpiexec_path()
     if mpiexec is None:
@@ -145,14 +171,11 @@ def _keep_ranks_alive(mpiexec) -> list[str]:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    import zenoh
-
+    # only light imports until the command is relaunched or guarded (a guard holds no more)
     from minority import rank_guard
     from minority.protocol.errors import SpecError
-    from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
     from minority.protocol.spec import Spec
-    from minority.render_server.daemon import RenderServer, ServerOptions
-    from minority.sim.ranks import under_launcher
+    from minority.sim.launcher import under_launcher
 
     if args.ranks is not None and args.ranks < 1:
         return fail("serve", "--ranks must be at least 1", BAD_INPUT)
@@ -186,6 +209,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                                      "--shadows", BAD_INPUT)
             from minority.serve_ranks import serve_ranks
             return serve_ranks(args, specs[0], MPI.COMM_WORLD)
+    import zenoh
+
+    from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
+    from minority.render_server.daemon import RenderServer, ServerOptions
+
     runs = [s.run for s in specs]
     if len(set(runs)) < len(runs):
         return fail("serve", f"two specs name the same run ({', '.join(runs)}); a server "

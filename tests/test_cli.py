@@ -69,3 +69,22 @@ def test_sim_without_an_mpi_library_names_the_fix(tmp_path):
     assert proc.stderr.startswith("minority sim: error: no MPI library")
     assert "minority[mpi]" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.h5").exists()
+
+
+def test_a_stop_signal_ends_a_wait_in_the_main_thread():
+    """The handler sets a flag the main thread's wait polls: no lock shared with the waiter
+    (an Event's set, run by a handler inside Event.wait, waits for the lock wait holds)."""
+    import os
+    import signal
+    import threading
+
+    from minority.cli import SignalStop
+
+    stop = SignalStop()
+    assert stop.wait(0.01) is False
+    previous = signal.signal(signal.SIGUSR2, lambda *_: stop.set())
+    try:
+        threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR2)).start()
+        assert stop.wait(30.0) is True and stop.is_set()
+    finally:
+        signal.signal(signal.SIGUSR2, previous)

@@ -345,3 +345,21 @@ def test_an_unexpected_error_on_one_rank_ends_every_rank(tmp_path):
     assert proc.returncode != 0
     assert "a fault injected on rank 1" in proc.stderr
     assert "render rank 1 failed (above): ending every rank" in proc.stderr
+
+
+def test_ctrl_c_stops_every_rank_cleanly(tmp_path):
+    """SIGINT to `serve --ranks 2` (as Ctrl-C): passed on through mpiexec and each rank's
+    guard; rank 0 stops the others, every log closes complete, exit status 0."""
+    proc, text = start_server(tmp_path, 2, free_port())
+    try:
+        proc.send_signal(signal.SIGINT)
+        status = proc.wait(60)
+    finally:
+        stop(proc)
+    assert status == 0, (tmp_path / "serve.err").read_text()[-3000:]
+    log = tmp_path / "out" / "tiny.mcap"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        kinds = [r.decode().kind for r in read_log(log, ["minority/*/event"])]
+    assert not caught, [str(w.message) for w in caught]
+    assert kinds[0] == "run_start" and kinds[-1] == "run_end"

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 from pathlib import Path
 
 MARKER = "numba_sources.sha256"
@@ -39,6 +40,9 @@ def sources_digest(package_dir: Path) -> str:
 def numba_cache_dir(package_dir: Path) -> Path:
     """Where numba caches the package's functions: ``NUMBA_CACHE_DIR``'s subdirectory for
     it (numba's own mapping) when set, else ``__pycache__`` beside the sources."""
+    if ("numba" not in sys.modules and "NUMBA_CACHE_DIR" not in os.environ
+            and not Path(".numba_config.yaml").exists()):
+        return package_dir / "__pycache__"  # numba's default, known without importing it
     from numba.core import config
     if not config.CACHE_DIR:
         return package_dir / "__pycache__"

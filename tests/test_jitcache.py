@@ -115,3 +115,18 @@ def test_the_entry_point_drops_stale_caches_before_a_command_that_runs_kernels(m
     called.clear()
     assert main(["log", "check", "no_such.mcap"]) == 2  # runs no kernel: no housekeeping
     assert called == []
+
+
+def test_the_housekeeping_does_not_import_numba_without_a_cache_dir(tmp_path):
+    """Every command with kernels runs it first, the ranks' guards too: numba's default
+    location is known without numba (about 60 MB of a process that never compiles)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    code = ("import sys\nfrom minority.cli import drop_stale_numba_caches\n"
+            "drop_stale_numba_caches()\nprint('numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env=env, cwd=tmp_path)
+    assert out.stdout.strip() == "False"

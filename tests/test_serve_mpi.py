@@ -363,3 +363,16 @@ def test_ctrl_c_stops_every_rank_cleanly(tmp_path):
         kinds = [r.decode().kind for r in read_log(log, ["minority/*/event"])]
     assert not caught, [str(w.message) for w in caught]
     assert kinds[0] == "run_start" and kinds[-1] == "run_end"
+
+
+def test_a_config_listening_on_port_0_is_refused_on_several_ranks(tmp_path):
+    """Rank 0's config listens on an ephemeral port the other ranks cannot know."""
+    (tmp_path / "peer.json5").write_text('{mode: "peer", listen: {endpoints: ["tcp/127.0.0.1:0"]},'
+                                         ' scouting: {multicast: {enabled: false}}}')
+    (tmp_path / "spec.json").write_text(json.dumps(SPEC))
+    proc = subprocess.run(
+        [sys.executable, "-m", "minority", "serve", "--spec", str(tmp_path / "spec.json"),
+         "--out", str(tmp_path / "out"), "--config", str(tmp_path / "peer.json5"),
+         "--ranks", "2"], capture_output=True, text=True, timeout=TIMEOUT_S, env=ENV)
+    assert proc.returncode != 0
+    assert "tcp/127.0.0.1:0 names no port: give --listen with a port" in proc.stderr

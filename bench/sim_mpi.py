@@ -97,7 +97,7 @@ def main() -> None:
 
     from minority.protocol import keys
     from minority.protocol.session import NetworkOptions, Role, open_session
-    from minority.sim.ranks import RELAUNCH_ENV, mpiexec_path
+    from minority.sim.launcher import RELAUNCH_ENV, mpiexec_path
 
     endpoint = free_endpoint()
     session = open_session(NetworkOptions(listen=[endpoint]), Role.SERVER)

@@ -141,23 +141,6 @@ def _serve_parser(sub) -> None:
     p.set_defaults(func=_cmd_serve, kernels=True)
 
 
-def _relaunch_serve(ranks: int, argv: list[str]) -> int:
-    """`python -m minority ARGV` under the venv's mpiexec -n RANKS; SIGINT and SIGTERM are
-    passed on to it."""
-    from minority.sim.launcher import RELAUNCH_ENV, mpiexec_path
-
-    mpiexec = mpiexec_path()
-    if mpiexec is None:
-        return fail("serve", f"--ranks needs mpiexec, none found next to {sys.executable} or "
-                             f"on PATH: {NO_MPI}")
-    cmd = [str(mpiexec), *_keep_ranks_alive(mpiexec), "-n", str(ranks), sys.executable, "-m",
-           "minority", *argv]
-    proc = subprocess.Popen(cmd, env={**RELAUNCH_ENV, **__import__("os").environ})
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda s, _: proc.send_signal(s))
-    return proc.wait()
-
-
 def _keep_ranks_alive(mpiexec) -> list[str]:
     """Hydra's flag that keeps the other ranks alive when one exits with an error status
     (minority.rank_guard turns a rank's death by a signal into one), so that rank 0 can
@@ -175,7 +158,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from minority import rank_guard
     from minority.protocol.errors import SpecError
     from minority.protocol.spec import Spec
-    from minority.sim.launcher import under_launcher
+    from minority.sim.launcher import relaunch, under_launcher
 
     if args.ranks is not None and args.ranks < 1:
         return fail("serve", "--ranks must be at least 1", BAD_INPUT)
@@ -189,8 +172,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         specs = [Spec.load(path) for path in args.spec]
     except (SpecError, OSError) as exc:
         return fail("serve", exc, BAD_INPUT)
-    if not under_launcher() and (args.ranks or 1) > 1:
-        return _relaunch_serve(args.ranks, args.argv)  # the same command under mpiexec
+    if not under_launcher() and (args.ranks or 1) > 1:  # the same command under mpiexec
+        return relaunch(args.ranks, args.argv, "serve", _keep_ranks_alive)
     if under_launcher() and rank_guard.wanted():
         # this command again, as the guard's child; the guard exits with its status
         rank_guard.run(args.argv, grace_s=args.rank_timeout + 5.0)
@@ -356,7 +339,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from minority.protocol.errors import SpecError
     from minority.protocol.spec import Spec
     from minority.sim.driver import SimulationError
-    from minority.sim.ranks import RankRunConfig, relaunch, run_ranks, under_launcher
+    from minority.sim.launcher import relaunch, under_launcher
+    from minority.sim.ranks import RankRunConfig, run_ranks
     from minority.sim.scene import SceneError, scene_path
 
     if args.ranks is not None and args.ranks < 1:

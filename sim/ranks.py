@@ -28,13 +28,6 @@ from typing import TextIO
 from minority.protocol.messages import EventKind
 from minority.sim.decomp import DEFAULT_REBALANCE_EVERY, SlabSimulator
 from minority.sim.driver import NonFiniteError, TimeStepError
-from minority.sim.launcher import (  # noqa: F401  (this module's names before)
-    LAUNCHER_ENV,
-    RELAUNCH_ENV,
-    mpiexec_path,
-    relaunch,
-    under_launcher,
-)
 from minority.sim.output import TrajectoryWriter
 from minority.sim.runner import PROGRESS_EVERY_S, frame_times
 from minority.sim.scene import load_scene

@@ -330,7 +330,7 @@ sys.exit(main(sys.argv[1:]))
 def test_an_unexpected_error_on_one_rank_ends_every_rank(tmp_path):
     """Rank 1 raises before the first barrier: it says so and MPI_Abort ends the job (rank 0
     would otherwise wait for it forever)."""
-    from minority.sim.ranks import mpiexec_path
+    from minority.sim.launcher import mpiexec_path
 
     (tmp_path / "spec.json").write_text(json.dumps(SPEC))
     (tmp_path / "failing.py").write_text(FAILING_RANK)
@@ -347,12 +347,18 @@ def test_an_unexpected_error_on_one_rank_ends_every_rank(tmp_path):
     assert "render rank 1 failed (above): ending every rank" in proc.stderr
 
 
-def test_ctrl_c_stops_every_rank_cleanly(tmp_path):
-    """SIGINT to `serve --ranks 2` (as Ctrl-C): passed on through mpiexec and each rank's
-    guard; rank 0 stops the others, every log closes complete, exit status 0."""
+@pytest.mark.parametrize("to_group", [False, True])
+def test_ctrl_c_stops_every_rank_cleanly(tmp_path, to_group):
+    """SIGINT to `serve --ranks 2`, or to its process group as a terminal's Ctrl-C does
+    (mpiexec is in a group of its own: a second SIGINT would make hydra abort the ranks):
+    passed on through mpiexec and each rank's guard; rank 0 stops the others, every log
+    closes complete, exit status 0."""
     proc, text = start_server(tmp_path, 2, free_port())
     try:
-        proc.send_signal(signal.SIGINT)
+        if to_group:
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGINT)
         status = proc.wait(60)
     finally:
         stop(proc)

@@ -78,12 +78,7 @@ def run(argv: list[str], grace_s: float) -> NoReturn:
     deadline = threading.Timer(grace_s, _end_stuck, (child,))
     deadline.daemon = True
     signal.signal(signal.SIGUSR1, lambda s, _: deadline.is_alive() or deadline.start())
-    while True:
-        try:
-            status = child.wait()
-            break
-        except InterruptedError:
-            continue
+    status = child.wait()  # retried by Python when a handler interrupts it (PEP 475)
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
     if status < 0:
         name = signal.Signals(-status).name

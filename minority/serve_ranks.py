@@ -69,15 +69,11 @@ def _serve_ranks(args: argparse.Namespace, spec, comm) -> int:
         listening = _config_listen(opts)
     listening = ctl.bcast(listening, root=0)
     unreachable = [] if opts.connect else [e for e in listening if e.rsplit(":", 1)[-1] == "0"]
-    if unreachable:
-        if rank == 0:
-            print(f"minority serve: error: the other render ranks connect to rank 0's listen "
-                  f"endpoints, and {', '.join(unreachable)} names no port: give --listen with "
-                  "a port (or --connect, where all ranks meet)", file=sys.stderr, flush=True)
-        ctl.Barrier()
-        if rank == 0:
-            comm.Abort(BAD_INPUT)
-        ctl.Barrier()  # rank 0 aborts the job
+    if unreachable and rank == 0:  # the others wait below until the abort ends them
+        print(f"minority serve: error: the other render ranks connect to rank 0's listen "
+              f"endpoints, and {', '.join(unreachable)} names no port: give --listen with "
+              "a port (or --connect, where all ranks meet)", file=sys.stderr, flush=True)
+        comm.Abort(BAD_INPUT)
     ctl.Barrier()  # rank 0 listens
     if rank > 0:
         wopts = worker_network(opts, listening, host == root_host, root_host)

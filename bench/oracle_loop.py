@@ -81,7 +81,7 @@ def open_spec(scene: Path, out: Path, frames: int, threads: int) -> Path:
 def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
              timeout_s: float) -> tuple[Path, float]:
     """Server, (follower), 2-rank sim; returns the server's log and the sim's wall s."""
-    from minority.demo import free_port
+    from minority.demo import free_port, wait_for_line
 
     out.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -127,16 +127,6 @@ def run_once(scene: Path, spec: Path, out: Path, closed: bool, threads: int,
                         p.wait()
     logs = sorted(out.glob("run*.mcap"), key=lambda f: f.stat().st_mtime)
     return (logs[-1] if logs else log), wall
-
-
-def wait_for_line(path: Path, text: str, proc: subprocess.Popen, what: str,
-                  timeout_s: float = 300.0) -> None:
-    """Until `text` is in the file `proc` writes; RuntimeError when it exits or times out."""
-    deadline = time.monotonic() + timeout_s
-    while text not in path.read_text():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"{what} did not start: {path}")
-        time.sleep(0.2)
 
 
 def in_force_within(log: Path, result: dict) -> int:

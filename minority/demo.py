@@ -123,13 +123,23 @@ def start_follower(o: DemoOptions, scene: Path, endpoint: str, env: dict, log) -
          "--checkpoint", str(o.checkpoint), "--ranks", str(o.ranks), "--connect", endpoint,
          "--threads", str(o.threads), "--timeout", str(o.timeout_s), "--wait", "120"],
         stdout=log, stderr=subprocess.STDOUT, env=env)
-    deadline = time.monotonic() + 120
-    while "following run" not in Path(log.name).read_text():
-        if follower.poll() is not None or time.monotonic() > deadline:
-            stop(follower)
-            raise RuntimeError(f"the closed-loop oracle did not start; see {log.name}")
-        time.sleep(0.1)
+    try:
+        wait_for_line(Path(log.name), "following run", follower, "the closed-loop oracle", 120)
+    except RuntimeError:
+        stop(follower)
+        raise
     return follower
+
+
+def wait_for_line(path: Path, text: str, proc: subprocess.Popen, what: str,
+                  timeout_s: float = 300.0) -> None:
+    """Until `text` is in the file `proc` writes; RuntimeError naming `what` when it exits
+    or the time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while text not in path.read_text():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"{what} did not start; see {path}")
+        time.sleep(0.1)
 
 
 def stop(proc: subprocess.Popen | None, wait_s: float = 60) -> None:
@@ -235,7 +245,7 @@ WHERE = """Files (in {out}/):
   oracle/preview.png    the spec's views rendered on the prediction
   spec.json             the oracle spec the run started with (edit it and replay the log)
   follow.log            the closed-loop oracle's spec updates, a JSON line each: reason,
-                        kind (shift, forecast), the run's time, wall cost (absent: --no-follow)
+                        kind (shift, forecast, end), the run's time, wall cost (absent: --no-follow)
   frames/{run}/VIEW/*.png  the frames the render server ray-traced during the run
   frames/{run}/VIEW.mp4    those frames as a movie (H.264, one per frame at 10 fps)
   frames/{run}/VIEW.webp   a small looping animation of them (320 px wide, under 1 MB)

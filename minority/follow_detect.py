@@ -204,10 +204,9 @@ class Detector:
                         else f"no {e.name} yet")
                 return Departure("late", e.name, now, now + slack - e.time_s,
                                  f"{what}: {now:.3f} s, the prediction {lo:.3f}-{hi:.3f} s")
-        return self._regions(flow, scale, seen, predicted)
+        return self._regions(flow, scale, predicted)
 
-    def _regions(self, flow: LiveFlow, scale: np.ndarray, seen: dict,
-                 predicted: dict) -> Departure | None:
+    def _regions(self, flow: LiveFlow, scale: np.ndarray, predicted: dict) -> Departure | None:
         if sum(k == "regions" for k, _ in self.acted) >= 2 or len(flow.time_s) < 2:
             return None
         peak = max(float(predicted.get("peak_speed_m_s", 0.0)), float(scale.max()))

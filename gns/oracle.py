@@ -18,6 +18,12 @@ OracleOptions.interval_widen), the windows are the union of the members' windows
 those intervals, the cadence follows the largest speed any member has at each frame, the
 regions hold every member's moving particles, the cameras frame every member's extent, and
 the spec carries the spread of the final deposit.
+
+A prediction with no flow (no particle travels `standing_travel` particle spacings: the
+column stands, settling elastically) is no reason to spend the budget: its spec renders each
+view at the run's start and end, sends every particle there (the region is the domain: where
+motion would come from is unknown) and leaves the rest of the frame budget unplanned, a
+reserve that the closed loop (`minority oracle follow`) spends if the run flows after all.
 """
 
 from __future__ import annotations
@@ -74,6 +80,9 @@ class OracleOptions:
     # what bench/oracle_calibration.py measured to cover the held-out runs)
     interval_widen: float = 1.0
     interval_pad_frames: float = 1.0
+    # no flow predicted when the farthest any particle travels is under this many particle
+    # spacings: the spec renders each view at the start and the end and keeps the budget
+    standing_travel: float = 1.0
 
     def __post_init__(self) -> None:
         if self.frames < 2 * len(VIEWS):
@@ -253,8 +262,16 @@ class Oracle:
         return float((self.envelope[inside] ** self.o.speed_power).sum() * self.dt) \
             if inside.any() else 0.0
 
+    def standing(self) -> bool:
+        """No flow predicted: no member's particles travel standing_travel spacings."""
+        return self.travel_m < self.o.standing_travel * self.spacing
+
     # --- the spec ---------------------------------------------------------------------
     def spec(self, provenance: dict | None = None) -> Spec:
+        if self.standing():
+            return self._spec(self._standing_views(), [{
+                "name": "domain", "lo_m": self.bounds[:, 0].tolist(),
+                "hi_m": self.bounds[:, 1].tolist()}], provenance)
         o = self.o
         windows = self.windows()
         regions, schedules, boxes = [], {}, {}
@@ -274,7 +291,6 @@ class Oracle:
                     boxes.setdefault(f"{phase}_{k}", []).append((name, box))
             schedules[phase] = segs
         per_view = _allocate(np.ones(len(VIEWS)), o.frames)
-        hi_d = max(self.travel_m, self.spacing)  # a colormap range, even at rest
         out_views = []
         for (name, phase, direction, up), budget in zip(VIEWS, per_view, strict=True):
             # segment k renders f_k + 1 instants, its last one shared with segment k + 1: at
@@ -285,24 +301,42 @@ class Oracle:
             windows_boxes = [[b for k in g for b in boxes[f"{phase}_{k}"]]
                              for g in groups if len(g)]
             share = _allocate([self.weight(a, b) for a, b in segs], budget - 1)
-            lo, hi = self.framed(phase).T
-            pad = o.margin * (hi - lo).max() * 0.5 + self.spacing
-            camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)
             out_views.append({
-                "name": name, "camera": camera.to_dict(), "width": o.width, "height": o.height,
-                "field": "displacement", "colormap": o.colormap,
-                "range": [0.0, float(hi_d * (1.0 + o.margin))],
-                "occlusion_cull": o.occlusion_cull,
+                **self._view(name, phase, direction, up),
                 "schedule": [{"t_start_s": a, "t_end_s": b, "every_s": (b - a) / int(f),
                               "regions": [n for n, _ in wb]}
                              for (a, b), f, wb in zip(segs, share, windows_boxes, strict=True)]})
+        return self._spec(out_views, regions, provenance)
+
+    def _view(self, name: str, phase: str, direction, up) -> dict:
+        """A view of the phase (framing, field, colormap), without its schedule."""
+        o = self.o
+        lo, hi = self.framed(phase).T
+        pad = o.margin * (hi - lo).max() * 0.5 + self.spacing
+        camera = fit_camera(lo - pad, hi + pad, direction, up, o.width / o.height)
+        hi_d = max(self.travel_m, self.spacing)  # a colormap range, even at rest
+        return {"name": name, "camera": camera.to_dict(), "width": o.width,
+                "height": o.height, "field": "displacement", "colormap": o.colormap,
+                "range": [0.0, float(hi_d * (1.0 + o.margin))],
+                "occlusion_cull": o.occlusion_cull}
+
+    def _standing_views(self) -> list[dict]:
+        """No flow predicted: each view renders the run's start and end, every particle."""
+        end = self.events.duration_s
+        return [{**self._view(name, phase, direction, up),
+                 "schedule": [{"t_start_s": 0.0, "t_end_s": end, "every_s": end,
+                               "regions": ["domain"]}]}
+                for name, phase, direction, up in VIEWS]
+
+    def _spec(self, views: list[dict], regions: list[dict], provenance: dict | None) -> Spec:
+        o = self.o
         events = []
         for name, t in event_times(self.events, self.dt).items():
             event = {"name": name, "time_s": t, "tolerance_s": max(0.1 * t, self.dt)}
             if name in self.intervals:
                 event["earliest_s"], event["latest_s"] = self.intervals[name]
             events.append(event)
-        doc = {"version": SPEC_VERSION, "run": o.run, "views": out_views, "regions": regions,
+        doc = {"version": SPEC_VERSION, "run": o.run, "views": views, "regions": regions,
                "events": events, "budget": {"frames": o.frames, "bytes": None},
                "provenance": {"oracle": ORACLE_VERSION, **(provenance or {}),
                               "predicted": self.summary()}}
@@ -321,6 +355,7 @@ class Oracle:
                 "fast_windows_s": [list(w) for w in fast_windows(self.time, self.scale)],
                 "windows_s": {k: list(v) for k, v in self.windows().items()},
                 "particles": int(self.positions.shape[1]), "frame_interval_s": self.dt,
+                **({"standing": True} if self.standing() else {}),
                 **({"ensemble": self.ensemble_summary()} if len(self.each) > 1 else {})}
 
     def ensemble_summary(self) -> dict:

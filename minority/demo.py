@@ -112,6 +112,9 @@ def run_oracle(o: DemoOptions, scene: Path, say: Steps) -> tuple[Path, Path]:
     s = oracle.summary()
     say(f"oracle: onset {s['onset_s']:.3f} s, peak {s['peak_s']:.3f} s, runout end "
         f"{s['runout_end_s']:.3f} s, displacement up to {s['displacement_range_m'][1]:.3f} m")
+    if s.get("standing"):
+        say("oracle: no flow predicted: each view renders the start and the end, the rest of "
+            "the frames is kept for the follower")
     return spec_path, rollout_h5
 
 

@@ -259,6 +259,9 @@ class _Segment(Oracle):
         self.displacement = (float(d.min()), float(d.max()))
         self.travel_m = self.displacement[1]
 
+    def standing(self) -> bool:
+        return False  # the run departed: its own speed series says where frames go
+
     def _own_windows(self) -> dict[str, tuple[float, float]]:
         e = {k: max(0.0, v - self.t0) for k, v in self.at.items()}
         end, pad = self.events.duration_s, self.dt

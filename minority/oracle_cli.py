@@ -621,6 +621,11 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     print(f"oracle: onset {p['onset_s']:.3f} s, peak motion {p['peak_s']:.3f} s, runout end "
           f"{p['runout_end_s']:.3f} s; displacement 0-{p['displacement_range_m'][1]:.3f} m",
           file=sys.stderr)
+    if p.get("standing"):
+        print(f"  no flow predicted (no particle travels {options.standing_travel:g} particle "
+              f"spacing, {oracle.spacing:.3f} m): each view renders the run's start and end, "
+              f"the rest of the {options.frames} frames is kept for `minority oracle follow`",
+              file=sys.stderr)
     for e in spec.events:
         if e.interval_s is not None:
             print(f"  {e.name}: {e.time_s:.3f} s, ensemble of {len(oracle.each)}: "

@@ -249,3 +249,42 @@ def test_an_early_kinetic_energy_spike_keeps_the_initiation_window_in_order():
     ra, rb = o.windows()["runout"]
     assert ra <= lo + DT and rb >= hi - DT  # the runout views cover the bulk's motion
     o.spec()  # valid: no window ends before it starts
+
+
+def test_a_prediction_with_no_flow_keeps_the_frame_budget(tmp_path):
+    """A column that only settles (travel under a particle spacing): each view renders the
+    run's start and end with every particle (the domain), and the rest of the budget stays
+    unplanned for the closed loop; a collapse of the same column is planned as before."""
+    pos = collapse()
+    x0 = pos[0]
+    settle = x0[None] + (pos - x0[None]) * (0.005 / TRAVEL)  # 5 mm of travel at most
+    spacing = 0.01
+    o = Oracle(settle, DT, BOUNDS, spacing, OracleOptions(run="standing", frames=90))
+    assert o.standing()
+    spec = o.spec()
+    assert spec.provenance["predicted"]["standing"] is True
+    assert [r.name for r in spec.regions] == ["domain"]
+    assert np.allclose([spec.regions[0].lo_m, spec.regions[0].hi_m], BOUNDS.T)
+    times = step_times(o.events.duration_s, 0.001)
+    end = o.events.duration_s
+    for view in spec.views:
+        assert view.wants(0, 0.0, None)  # the start
+        assert rendered(spec, view, times) == pytest.approx([end])  # and the end alone
+        assert view.range[1] >= spacing  # a readable colormap range at rest
+    assert len(spec.views) == 3 and spec.budget.frames == 90
+    # the same column collapsing: planned in full, no standing mark
+    moving = Oracle(pos, DT, BOUNDS, spacing, OracleOptions(run="standing", frames=90))
+    assert not moving.standing()
+    assert "standing" not in moving.spec().provenance["predicted"]
+    assert sum(len(rendered(moving.spec(), v, times)) for v in moving.spec().views) > 60
+    # `minority oracle spec` says so
+    write_hdf5(tmp_path / "settle.h5", settle, DT, attrs={
+        "bounds_m": BOUNDS.tolist(), "particle_spacing_m": spacing, "scene": "synthetic",
+        "checkpoint": "none"})
+    proc = subprocess.run([sys.executable, "-m", "minority", "oracle", "spec",
+                           str(tmp_path / "settle.h5"), "-o", str(tmp_path / "spec.json"),
+                           "--run", "standing"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "no flow predicted" in proc.stderr and "kept for `minority oracle follow`" in proc.stderr
+    assert Spec.load(tmp_path / "spec.json").provenance["predicted"]["standing"] is True

@@ -199,7 +199,9 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     scaled speed after the join never above the run's there: a model outside what it
     learnt, e.g. a column creeping before it fails) is joined to its own trend instead: its
     speed scale growing at its rate until the run's end, at most the free-fall speed from
-    the top of the material (sqrt(2 g h), h its height at the join, m), and its runout
+    the top of the material (sqrt(2 g h), h its height at the join, m); the rate and the
+    series are the run's up to its newest Stats when it is still speeding up then (a
+    failing column's growth accelerates: the freshest stretch is the best guess), and its runout
     start is the start of the fast window that holds its peak (the trend's peak is a guess
     from below: an earlier, smaller motion is not the runout)."""
     sp = speeds(rollout, dt, centered=True)  # [frames, m] m/s
@@ -218,6 +220,9 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     f_scale, f_ke = ratio * r_scale[after], ratio ** 2 * r_ke[after]
     rate = speeding_up(t, scale, ke, t_join) if past.any() else None
     trend = rate is not None and after.any() and f_scale.max() <= scale[past][-1]
+    newest = speeding_up(t, scale, ke, float(t[-1])) if trend else None
+    if newest is not None:  # the rollout set aside: the run's newest Stats, its growth then
+        rate, past, after = newest, np.ones(len(t), bool), r_t > t[-1]
     if trend:
         z = rollout[c1 - 1][:, 2]
         cap = max(np.sqrt(2 * G_M_S2 * float(z.max() - z.min())), scale[past][-1])

@@ -534,6 +534,28 @@ def test_a_run_speeding_up_past_a_rollout_at_rest_is_joined_to_its_own_trend():
     assert not trend and at["peak_motion"] < 0.05
 
 
+def accelerating_creep(t: float) -> float:
+    """Speed (m/s): a creep from 0.2 s whose growth rate grows with time (log speed
+    quadratic from 0.4 s: 6/s at 0.5 s, 12/s at 0.6 s, 18/s at 0.7 s), as a failing column's."""
+    grow = 0.002 * np.exp(30 * (t - 0.4) ** 2) if t >= 0.4 else 0.002 * (t >= 0.2)
+    return 1e-4 + grow
+
+
+def test_the_trend_is_read_from_the_newest_stats_when_the_run_is_still_speeding_up():
+    from minority.follow import joined_events
+
+    t0 = 0.6 - 5 * FRAME_S  # snapshots to 0.6 s; the forecast planned at 0.65 s
+    rests = rollout_of(lambda t: accelerating_creep(t) if t <= 0.6 else 1e-4, t0, 0.75)
+    ts = np.arange(0.6, 0.75, 0.001)
+    half = ts[np.argmax([accelerating_creep(x) >= 0.5 * accelerating_creep(0.75) for x in ts])]
+    at_join = joined_events(flow_of(accelerating_creep, 0.6), t0, FRAME_S, rests, 6).at
+    at_newest, *_, trend = joined_events(flow_of(accelerating_creep, 0.65), t0, FRAME_S, rests, 6)
+    assert trend and at_newest["peak_motion"] == pytest.approx(0.75)
+    # the growth at the join (12/s) puts the runout start 6 frames early; at 0.65 s, 15/s
+    assert at_join["runout_start"] < half - 5 * FRAME_S
+    assert at_newest["runout_start"] == pytest.approx(half, abs=2 * FRAME_S)
+
+
 def test_an_event_missed_again_after_a_reforecast_is_a_new_departure():
     late = flow_of(collapse(0.19, 0.7), 0.58)
     det = Detector()

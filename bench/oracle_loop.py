@@ -10,10 +10,13 @@ same spec and `minority oracle follow`). Each prints a JSON line:
 {"bench": "oracle_loop", "scene", "loop": "open"|"closed", "events_within", "events",
  "events_within_in_force", "regions_share", "frames_vs_ideal", "frames_in_critical",
  "frames_ratio", "bytes_share", "updates", "forecasts", "forecast_wall_s", "run_wall_s",
- "frames"}
+ "frames", "event_errors", "event_error_max", "displacement_error"}
 - events_within: events of the run's last spec within 10 % (minority report score), of
   `events`; events_within_in_force: the same with, for each event, the spec in force when
-  it happened (what the server worked with then);
+  it happened (what the server worked with then); event_errors: each event's time error
+  of the last spec, relative to the actual time ((predicted - actual) / actual), and
+  event_error_max the largest in size; displacement_error: the last spec's predicted
+  maximum displacement against the run's, relative;
 - regions_share: moving particles inside the regions (the ranks' Stats, under the spec in
   force at each step);
 - frames_vs_ideal: frames inside the actual critical windows against a fixed cadence of
@@ -179,7 +182,18 @@ def measure(scene_name: str, loop: str, log: Path, wall: float) -> dict:
             "forecasts": len(forecasts),
             "forecast_wall_s": [round(p["forecast_s"], 2) for p in forecasts],
             "run_wall_s": round(wall, 1),
-            "frames": frames["oracle"]}
+            "frames": frames["oracle"],
+            **event_errors(result)}
+
+
+def event_errors(result: dict) -> dict:
+    """The last spec's errors, relative to the run's: each event time's, the largest in
+    size, and the maximum displacement's (None where the run's is 0)."""
+    rel = {e["event"]: e["relative_error"] for e in result["events"]
+           if e["relative_error"] is not None}
+    return {"event_errors": {k: round(v, 4) for k, v in rel.items()},
+            "event_error_max": round(max(map(abs, rel.values())), 4) if rel else None,
+            "displacement_error": result["displacement_max_m"]["relative_error"]}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -179,3 +179,20 @@ def test_an_indexed_log_and_the_same_log_cut_short_score_the_same(tmp_path):
     assert a.pop("log") == {"complete": True, "notes": []}
     assert b.pop("log")["complete"] is False and len(said) == 1
     assert json.dumps(a, default=float) == json.dumps(b, default=float)
+
+
+def test_the_oracle_loop_bench_reads_the_errors_of_a_known_run(tmp_path):
+    """bench.oracle_loop's line on the hand-made run: the peak 20 % late, the displacement
+    10 % over; the errors relative to the actual times."""
+    from bench.oracle_loop import event_errors
+
+    write_log(tmp_path / "run.mcap", np.linspace(0.22, 0.38, 20))
+    result = score(make_spec(), load_run(tmp_path / "run.mcap"))
+    err = event_errors(result)
+    actual = {e["event"]: e["actual_s"] for e in result["events"]}
+    assert err["event_errors"]["peak_motion"] == pytest.approx(0.36 / actual["peak_motion"] - 1,
+                                                              abs=1e-4)
+    assert err["event_errors"]["peak_motion"] == pytest.approx(0.2, abs=0.05)
+    assert err["event_error_max"] == max(abs(v) for v in err["event_errors"].values())
+    assert set(err["event_errors"]) == {"failure_onset", "peak_motion", "runout_end"}
+    assert err["displacement_error"] == pytest.approx(0.1)

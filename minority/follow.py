@@ -221,6 +221,8 @@ class Follower:
         now = self.flow.now_s
         if self._fast_over or not slow_after_peak(self.flow, steps=2):
             return
+        if self.spec.provenance.get("predicted", {}).get("standing"):
+            return  # its frames ahead are the picture of the end, no fast phase's
         if not any(w.t_end_s is None or w.t_end_s > now
                    for v in self.spec.views for w in v.schedule):
             return

@@ -80,13 +80,18 @@ def widened(spec: Spec, now_s: float, bounds_m: np.ndarray, share: float = WIDEN
 
 def without_future(spec: Spec, from_s: float) -> dict:
     """The spec's JSON with no window after from_s (s): windows that start later dropped,
-    those open then ended there (a view left with none keeps an instant at t = 0, past)."""
+    those open then ended there (a view left with none keeps an instant at t = 0, past).
+    A standing spec (no flow predicted: each view at the run's start and end) keeps its
+    picture of the end: an instant, not frames spent on a fast phase."""
     d = spec.to_dict()
+    standing = bool(spec.provenance.get("predicted", {}).get("standing"))
     for v in d["views"]:
+        ends = [{**w, "t_start_s": w["t_end_s"]} for w in v["schedule"] if standing
+                and w["t_end_s"] is not None and w["t_end_s"] > max(from_s, w["t_start_s"])]
         kept = [w for w in v["schedule"] if w["t_start_s"] < from_s]
         for w in kept:
             w["t_end_s"] = from_s if w["t_end_s"] is None else min(w["t_end_s"], from_s)
-        v["schedule"] = kept or [{**v["schedule"][0], "t_start_s": 0.0, "t_end_s": 0.0}]
+        v["schedule"] = (kept or [{**v["schedule"][0], "t_start_s": 0.0, "t_end_s": 0.0}]) + ends
     d["snapshots"] = []
     return d
 

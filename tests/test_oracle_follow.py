@@ -458,6 +458,31 @@ def test_without_future_ends_every_window_at_the_adoption():
     assert [(w["t_start_s"], w["t_end_s"]) for w in gone] == [(0.0, 0.0)]
 
 
+def standing_spec() -> Spec:
+    """spec() as the oracle writes a prediction with no flow: each view at the start and
+    the end of a 1 s run."""
+    d = spec().to_dict()
+    d["views"][0]["schedule"] = [{"t_start_s": 0.0, "t_end_s": 1.0, "every_s": 1.0,
+                                  "regions": ["a"]}]
+    d["provenance"] = {"predicted": {"standing": True}}
+    return Spec.from_dict(d)
+
+
+def test_a_standing_spec_cut_short_keeps_its_picture_of_the_end():
+    from minority.follow import without_future
+
+    cut = Spec.from_dict(without_future(standing_spec(), 0.09))
+    windows = [(w.t_start_s, w.t_end_s) for w in cut.views[0].schedule]
+    assert windows == [(0.0, 0.09), (1.0, 1.0)]
+    due = [t for t in np.arange(0.0, 1.0001, 0.005)
+           if cut.wants(round(t / 0.005), t, t - 0.005 if t > 0 else None)]
+    assert due == pytest.approx([0.0, 1.0])  # the start, and the end
+    # a spec of a predicted flow is cut at the adoption, as before
+    flowing = {**standing_spec().to_dict(), "provenance": {}}
+    cut = Spec.from_dict(without_future(Spec.from_dict(flowing), 0.09))
+    assert [(w.t_start_s, w.t_end_s) for w in cut.views[0].schedule] == [(0.0, 0.09)]
+
+
 def test_a_departure_while_the_gns_rolls_abandons_the_stale_forecast():
     """Stats queued while the forecast runs are read between its rollout chunks: an early
     onset there abandons it for the new departure's shift and snapshots."""
@@ -635,6 +660,11 @@ def test_the_windows_end_once_when_the_fast_phase_is_over():
     assert max(w.t_end_s for v in f.spec.views for w in v.schedule) == pytest.approx(0.28)
     f._end_after_fast_phase()
     assert len(f.updates) == 1  # once
+    # a standing spec's frames ahead are its picture of the end: no end update
+    still = follower_at(uniform(collapse(0.1, 0.3)), 0.28)
+    still._adopt(standing_spec())
+    still._end_after_fast_phase()
+    assert not still.updates
 
 
 @pytest.mark.parametrize("early", [False, True])

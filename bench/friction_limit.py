@@ -9,12 +9,11 @@ The cases are bench.oracle_loop's columns (test_003 of gns/configs/column_sweep_
 0.3, FLIP 0.99), each again at CFL 0.1: friction 20, 35.5 (test_003), 40 and 45 deg;
 friction 45 also at CFL 0.25 and 0.2, with pure APIC (flip 0), and on a cell of 0.008 m
 (8x the particles, `--fine`: about 2.5 min, and 7 min more at CFL 0.1; the rest takes
-about 4 min on 2 cores). peak_s, peak_speed_m_s: the frame
-where the speed scale (the 95th percentile of the particle speeds, as the ranks' Stats
-read it) is largest; fast_from_s: where it first reaches half of that peak (the score's
-runout start; null when the peak is the first settling's, within 0.05 s);
-max_displacement_m: at the run's end. A case whose peak or displacement moves with the
-time step is not converged there.
+about 4 min on 2 cores). peak_s, peak_speed_m_s: the frame where the speed scale (the 95th
+percentile of the particle speeds, as the ranks' Stats read it) is largest; fast_from_s:
+where it first reaches half of that peak (the score's runout start; null when the peak is
+the first settling's, within 0.05 s); max_displacement_m: at the run's end. A case whose
+peak or displacement moves with the time step is not converged there.
 
     python -m bench.friction_limit [--fine] [--threads N] [--out DIR]
 """

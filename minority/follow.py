@@ -48,6 +48,7 @@ from minority.follow_forecast import (  # noqa: F401 - re-exported
     reforecast,
     roll_to_rest,
     shifted,
+    standing,
     widened,
     without_future,
 )
@@ -221,7 +222,7 @@ class Follower:
         now = self.flow.now_s
         if self._fast_over or not slow_after_peak(self.flow, steps=2):
             return
-        if self.spec.provenance.get("predicted", {}).get("standing"):
+        if standing(self.spec):
             return  # its frames ahead are the picture of the end, no fast phase's
         if not any(w.t_end_s is None or w.t_end_s > now
                    for v in self.spec.views for w in v.schedule):

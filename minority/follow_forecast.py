@@ -78,15 +78,21 @@ def widened(spec: Spec, now_s: float, bounds_m: np.ndarray, share: float = WIDEN
     return Spec.from_dict(d)
 
 
+def standing(spec: Spec) -> bool:
+    """Whether the spec is the oracle's prediction of no flow (each view at the run's start
+    and end: gns.oracle's standing spec)."""
+    return bool(spec.provenance.get("predicted", {}).get("standing"))
+
+
 def without_future(spec: Spec, from_s: float) -> dict:
     """The spec's JSON with no window after from_s (s): windows that start later dropped,
     those open then ended there (a view left with none keeps an instant at t = 0, past).
     A standing spec (no flow predicted: each view at the run's start and end) keeps its
     picture of the end: an instant, not frames spent on a fast phase."""
     d = spec.to_dict()
-    standing = bool(spec.provenance.get("predicted", {}).get("standing"))
+    keep_end = standing(spec)
     for v in d["views"]:
-        ends = [{**w, "t_start_s": w["t_end_s"]} for w in v["schedule"] if standing
+        ends = [{**w, "t_start_s": w["t_end_s"]} for w in v["schedule"] if keep_end
                 and w["t_end_s"] is not None and w["t_end_s"] > max(from_s, w["t_start_s"])]
         kept = [w for w in v["schedule"] if w["t_start_s"] < from_s]
         for w in kept:
@@ -206,9 +212,9 @@ def joined_events(flow: LiveFlow, t0_s: float, dt: float, rollout: np.ndarray,
     speed scale growing at its rate until the run's end, at most the free-fall speed from
     the top of the material (sqrt(2 g h), h its height at the join, m); the rate and the
     series are the run's up to its newest Stats when it is still speeding up then (a
-    failing column's growth accelerates: the freshest stretch is the best guess), and its runout
-    start is the start of the fast window that holds its peak (the trend's peak is a guess
-    from below: an earlier, smaller motion is not the runout)."""
+    failing column's growth accelerates: the freshest stretch is the best guess), and its
+    runout start is the start of the fast window that holds its peak (the trend's peak is a
+    guess from below: an earlier, smaller motion is not the runout)."""
     sp = speeds(rollout, dt, centered=True)  # [frames, m] m/s
     r_t = t0_s + np.arange(len(sp)) * dt
     r_scale = np.quantile(sp, SPEED_QUANTILE, axis=1)

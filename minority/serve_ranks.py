@@ -17,6 +17,18 @@ import traceback
 from minority.cliargs import BAD_INPUT, FAILED, parent_made
 
 
+def report_failures(servers) -> int:
+    """Say on stderr what went wrong in each server's last run (a rank killed before its
+    done event, a log cut short: RenderServer.failures); FAILED if anything did, else 0."""
+    status = 0
+    for server in servers:
+        for failure in server.failures():
+            print(f"minority serve: error: run {server.current.name}: {failure}",
+                  file=sys.stderr, flush=True)
+            status = FAILED
+    return status
+
+
 def serve_ranks(args: argparse.Namespace, spec, comm) -> int:
     """Rank 0: the server; ranks k > 0: workers. Returns the exit status (rank 0 exits with
     MPI_Abort after a rank died: MPI cannot finalize with it). An unexpected error on any
@@ -157,7 +169,7 @@ def _server(args, spec, ctl, draw, session) -> int:
           file=sys.stderr, flush=True)
     while not stop.wait(0.2) and not coordinator.aborted.is_set():
         if args.exit_when_done and server.finished.is_set():
-            print("every rank is done and the last step rendered", file=sys.stderr)
+            print("every rank has ended and the last step rendered", file=sys.stderr)
             break
     if coordinator.aborted.is_set():
         print(f"minority serve: error: {coordinator.failure}; log closed: {server.summary()}",
@@ -172,4 +184,4 @@ def _server(args, spec, ctl, draw, session) -> int:
     if live is not None:
         live.close()
     print(f"stopped: {server.summary()}", file=sys.stderr)
-    return 0
+    return report_failures([server])

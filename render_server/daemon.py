@@ -45,7 +45,14 @@ from minority.render_server.assemble import (
 from minority.render_server.frames import render_views
 from minority.render_server.particles import complete_step
 from minority.render_server.render import Canvas, prepare, render
-from minority.render_server.runs import LogQueue, RunInstance, ServerStats, instance_paths, open_writer
+from minority.render_server.runs import (
+    LogQueue,
+    RunInstance,
+    ServerStats,
+    claim_frames_dir,
+    open_writer,
+    unclaimed_frames_dir,
+)
 
 RECEIVE_POLL_S = 0.05  # receive loop wakes at least this often to expire stale steps
 TOKEN_GRACE_S = 1.0  # a rank whose token vanished without a done event: gone this much later
@@ -200,19 +207,31 @@ class RenderServer:
     # --- runs -----------------------------------------------------------------------
     def _open_instance(self) -> RunInstance:
         o = self.options
-        name, log_path = instance_paths(o.out_dir, o.record, self.run)
+        try:
+            frames_dir = claim_frames_dir(o.out_dir, self.run)
+        except OSError as exc:  # served all the same: frames published, write errors counted
+            frames_dir = unclaimed_frames_dir(o.out_dir, self.run)
+            self._error(f"cannot make the frame directory {frames_dir}: {exc}")
+        name = frames_dir.name
         writer = None
-        if log_path is not None:
+        if o.record is not None:
             try:
-                writer = open_writer(log_path, self.run, name)
+                writer = open_writer(o.record, self.run, name)
             except OSError as exc:
                 if self._seq == 0:  # at start: the caller says it cannot start
+                    if frames_dir.is_dir():
+                        frames_dir.rmdir()
                     raise
-                self._error(f"cannot open the log {log_path}: {exc}; this run is not logged")
+                self._error(f"cannot open a log next to {o.record}: {exc}; this run is not "
+                            "logged")
+            if writer is not None and writer.path != o.record:
+                print(f"minority serve: run {self.run}: {o.record} exists, this run logs to "
+                      f"{writer.path}", file=sys.stderr, flush=True)
         self._seq += 1
         inst = self._run = RunInstance(
-            self._seq, name, o.out_dir / name, writer,
+            self._seq, name, frames_dir, writer,
             StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes))
+        inst.inbox_dropped_before = self._inbox.dropped if hasattr(self, "_inbox") else 0
         if self._mpi is not None:  # the other ranks log their chunks next to this log
             self._mpi.open_instance(writer.path if writer is not None else None)
         if self._log is not None:
@@ -240,7 +259,10 @@ class RenderServer:
 
     def _finish_instance(self, inst: RunInstance) -> None:
         """The run's last step is rendered: say so, close its log."""
-        self._publish_event(inst, EventKind.RUN_END, "run ended", self._summary(inst))
+        failures = self._failures(inst)
+        self._publish_event(inst, EventKind.RUN_END,
+                            "run ended" + (f" with failures: {'; '.join(failures)}" if failures
+                                           else ""), self._summary(inst))
         if self._log is not None:
             self._log.close_writer(inst.writer)
         if self._mpi is not None:
@@ -419,6 +441,11 @@ class RenderServer:
             waiting = rank in inst.chunks_sent and rank not in inst.ranks_gone
             if rank not in inst.ranks_gone and (now - t >= TOKEN_GRACE_S * 1e9) and (
                     not waiting or now - t >= self.options.timeout_s * 1e9):
+                if rank not in inst.chunks_sent:
+                    inst.ranks_lost.add(rank)
+                    self._error(f"rank {rank} of run {inst.name} vanished without its done "
+                                "event (killed, or its link lost): the run is cut short",
+                                always=True)
                 self._release(self._gone(inst, rank))
 
     def _gone(self, inst: RunInstance, rank: int) -> list[AssembledStep]:
@@ -508,39 +535,62 @@ class RenderServer:
         event = Event(self.run, kind, -1, message[:4000], detail or {})
         self._publish(inst, keys.event(self.run), event, CONTROL_QOS)
 
-    def _error(self, message: str) -> None:
-        """Log an error and publish it as an event, at most one per interval."""
+    def _error(self, message: str, always: bool = False) -> None:
+        """Log an error and publish it as an event, at most one per interval unless
+        `always`. It is logged in the open run; between runs it is published only."""
         if self._run is not None:
             self._run.stats.last_error = message
         self._errors_unreported += 1
         now = time.monotonic()
-        if now - self._last_error_event >= ERROR_EVENT_INTERVAL_S:
+        if always or now - self._last_error_event >= ERROR_EVENT_INTERVAL_S:
             print(f"minority serve: {message}", file=sys.stderr, flush=True)
-            self._publish_event(self._run, EventKind.ERROR, message,
+            inst = self._run if self._run is not None and not self._run.finished.is_set() \
+                else None
+            self._publish_event(inst, EventKind.ERROR, message,
                                 {"errors": self._errors_unreported})
             self._errors_unreported = 0
             self._last_error_event = now
 
     def _summary(self, inst: RunInstance) -> dict:
+        """The run's counters. Every chunk a rank's done event counts is in exactly one of
+        chunks (assembled), inbox_dropped, queued_at_stop and lost_in_transit."""
         a, s = inst.assembler.stats, inst.stats
-        lost = inst.lost_in_transit()
+        missing = inst.missing()
+        inbox_dropped = self._inbox.dropped - inst.inbox_dropped_before
+        lost = max(0, sum(missing.values()) - inbox_dropped - inst.queued_at_stop)
         return {"name": inst.name, "chunks": s.chunks, "rejected": s.rejected,
                 "steps_rendered": s.steps_rendered, "steps_skipped": self._latest.replaced,
                 "frames": s.frames, "view_errors": s.view_errors,
                 "write_errors": s.write_errors, "mismatched_fields": a.mismatched_fields,
                 "duplicates": a.duplicates, "late": a.late, "timed_out": a.timed_out,
-                "evicted": a.evicted, "inbox_dropped": self._inbox.dropped,
-                "lost_in_transit": sum(lost.values()),
-                "lost_by_rank": {str(r): n for r, n in lost.items()},
+                "evicted": a.evicted, "inbox_dropped": inbox_dropped,
+                "queued_at_stop": inst.queued_at_stop, "lost_in_transit": lost,
+                "missing_by_rank": {str(r): n for r, n in missing.items()},
+                "ranks_lost": sorted(inst.ranks_lost),
                 "log_dropped": (self._log.dropped_by.get(inst.writer.path, 0)
                                 if self._log is not None and inst.writer is not None else 0),
                 "log_unwritten": inst.writer.unwritten if inst.writer is not None else 0,
+                "log_failure": inst.writer.failure if inst.writer is not None else "",
                 "between_runs": self.between_runs, "spec_updates": self.spec_updates,
                 "spec_updates_refused": self.spec_updates_refused}
 
     def summary(self) -> dict:
         """The counters of the open run (or of the last one)."""
         return self._summary(self._run)
+
+    def _failures(self, inst: RunInstance) -> list[str]:
+        out = []
+        if inst.ranks_lost:
+            out.append("rank(s) " + ", ".join(map(str, sorted(inst.ranks_lost)))
+                       + " vanished without their done event")
+        if inst.writer is not None and inst.writer.failure:
+            out.append(f"its log {inst.writer.path} ends early ({inst.writer.failure})")
+        return out
+
+    def failures(self) -> list[str]:
+        """What went wrong in the open run (or the last one) that its user must hear of: a
+        rank killed before it was done, a log cut short. Empty: none."""
+        return self._failures(self._run)
 
     def abort(self, reason: str) -> None:
         """A render rank died (serve_mpi): say so, end the open run and close the log without
@@ -555,6 +605,18 @@ class RenderServer:
         if self._log is not None:
             self._log.stop()
 
+    def _keep_queued(self, inst: RunInstance) -> None:
+        """At a stop: the rank messages still queued go to the run's log unrendered, and its
+        chunks are counted (queued_at_stop), so none is in nobody's count."""
+        try:
+            self._take_side()
+        except Exception as exc:  # noqa: BLE001 - the stop must go on
+            self._error(f"handling a rank event failed: {exc!r}")
+        while (item := self._inbox.get(timeout=0)) is not None:
+            inst.queued_at_stop += 1
+            if self._log is not None:
+                self._log.put(inst.writer, item.key, item.payload, item.recv_ns)
+
     def close(self) -> None:
         """Stop, render nothing more, end the open run, close the logs (idempotent)."""
         if self._stop.is_set():
@@ -567,6 +629,7 @@ class RenderServer:
         self._token_sub.undeclare()
         self._queryable.undeclare()
         if not self._run.finished.is_set():
+            self._keep_queued(self._run)
             self._finish_instance(self._run)
         if self._mpi is not None:
             self._mpi.stop()

@@ -4,8 +4,11 @@ counters, frame directory and MCAP log; `LogQueue` writes every instance's log o
 thread, in the order its messages were queued.
 
 A run id may run again (a new `minority sim` with the same `--run` after the last one
-ended, or after a server restart): each run gets the first free name of `{run}`,
-`{run}.1`, `{run}.2`, ... for its frame directory and its log, so nothing is overwritten.
+ended, or after a server restart), and several servers may share one `--out`: each run
+claims the first free frame directory `{run}`, `{run}.1`, ... and, apart from it, the
+first free log `FILE`, `{stem}.1{suffix}`, ... (`--record FILE` is written as given while
+FILE does not exist). A claim is atomic (mkdir, open O_EXCL), so two servers started at
+the same instant take two names and nothing is overwritten.
 """
 
 from __future__ import annotations
@@ -34,16 +37,36 @@ class ServerStats:
     last_error: str = ""
 
 
-def instance_paths(out_dir: Path, record: Path | None, run: str) -> tuple[str, Path | None]:
-    """The first free name of `run`, `run.1`, ... (no frame directory `out_dir/{name}` and,
-    with a log, no log file of that suffix), and the log path (None: no log)."""
+def numbered_dir(out_dir: Path, run: str, k: int) -> Path:
+    """The k-th name of a run's frame directory: `out_dir/run`, `out_dir/run.1`, ..."""
+    return out_dir / (run if k == 0 else f"{run}.{k}")
+
+
+def numbered_log(record: Path, k: int) -> Path:
+    """The k-th name of a log: `record`, `{stem}.1{suffix}`, ..."""
+    return record if k == 0 else record.with_name(f"{record.stem}.{k}{record.suffix}")
+
+
+def unclaimed_frames_dir(out_dir: Path, run: str) -> Path:
+    """The first frame directory name of `run` that does not exist (not created)."""
+    k = 0
+    while (path := numbered_dir(out_dir, run, k)).exists():
+        k += 1
+    return path
+
+
+def claim_frames_dir(out_dir: Path, run: str) -> Path:
+    """Create and return the first free frame directory of `run` (mkdir: atomic, so a
+    directory another server made a moment ago is never shared)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
     k = 0
     while True:
-        suffix = "" if k == 0 else f".{k}"
-        log = None if record is None else record.with_name(f"{record.stem}{suffix}{record.suffix}")
-        if not (out_dir / f"{run}{suffix}").exists() and (log is None or not log.exists()):
-            return f"{run}{suffix}", log
-        k += 1
+        path = numbered_dir(out_dir, run, k)
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            k += 1
 
 
 class RunInstance:
@@ -67,14 +90,18 @@ class RunInstance:
         self.chunks_sent: dict[int, int] = {}
         self.chunks_received: dict[int, int] = {}
         self.token_gone_ns: dict[int, int] = {}
+        self.ranks_lost: set[int] = set()  # token vanished without a done event (killed)
+        self.inbox_dropped_before = 0  # the server's inbox drops when this run opened
+        self.queued_at_stop = 0  # chunks received but still queued when the server stopped
         self.drained = False  # every rank gone and every pending step released
         self.finished = threading.Event()
 
     def all_gone(self) -> bool:
         return self.ranks_expected > 0 and len(self.ranks_gone) >= self.ranks_expected
 
-    def lost_in_transit(self) -> dict[int, int]:
-        """Chunks a rank's done event says it sent that never arrived, per rank."""
+    def missing(self) -> dict[int, int]:
+        """Chunks a rank's done event says it sent that were not assembled, per rank: dropped
+        by a full inbox, still queued at a stop, or lost in transit."""
         return {r: n - self.chunks_received.get(r, 0) for r, n in sorted(self.chunks_sent.items())
                 if n > self.chunks_received.get(r, 0)}
 
@@ -100,32 +127,41 @@ class LogQueue:
     max_bytes: int = 1 << 30
     dropped: int = 0
     dropped_by: dict[Path, int] = field(default_factory=dict)
+    after_close: int = 0  # messages for a writer already closed: refused, never written
 
     def __post_init__(self) -> None:
         self._items: collections.deque[_Item] = collections.deque()
         self._bytes = 0
         self._cond = threading.Condition()
         self._stop = False
+        self._closed: set[Path] = set()  # writers whose close is queued
         self._thread = threading.Thread(target=self._loop, name="minority-log", daemon=True)
         self._thread.start()
 
     def put(self, writer: LogWriter | None, key: str, payload, log_ns: int,
-            message=None) -> None:
+            message=None) -> bool:
+        """Queue a message for `writer`; False when it is not queued: no writer, a writer
+        already closed (`after_close`), or a full queue (`dropped`)."""
         if writer is None:
-            return
+            return False
         with self._cond:
+            if writer.path in self._closed:
+                self.after_close += 1
+                return False
             if len(self._items) >= self.capacity or self._bytes + len(payload) > self.max_bytes:
                 self.dropped += 1
                 self.dropped_by[writer.path] = self.dropped_by.get(writer.path, 0) + 1
-                return
+                return False
             self._items.append(_Item(writer, key, bytes(payload), log_ns, message))
             self._bytes += len(payload)
             self._cond.notify()
+        return True
 
     def close_writer(self, writer: LogWriter | None) -> None:
         """Finish the writer's file once the messages queued before this call are written."""
         if writer is not None:
             with self._cond:
+                self._closed.add(writer.path)
                 self._items.append(_Item(writer, close=True))
                 self._cond.notify()
 
@@ -160,7 +196,14 @@ class LogQueue:
         self._thread.join()
 
 
-def open_writer(path: Path, run: str, name: str) -> LogWriter:
-    """A new log (never an existing file: instance_paths chose a free name)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return LogWriter(path, metadata={"run": run, "instance": name, "side": "server"})
+def open_writer(record: Path, run: str, name: str) -> LogWriter:
+    """A new log at the first free name of `record` (LogWriter opens O_EXCL: a file made
+    by another server a moment ago is skipped, never overwritten)."""
+    record.parent.mkdir(parents=True, exist_ok=True)
+    k = 0
+    while True:
+        try:
+            return LogWriter(numbered_log(record, k),
+                             metadata={"run": run, "instance": name, "side": "server"})
+        except FileExistsError:
+            k += 1

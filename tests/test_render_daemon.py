@@ -343,7 +343,7 @@ def test_chunks_a_rank_sent_that_never_came_are_counted_lost(daemon, client_fact
     daemon.options.timeout_s = 0.1
     assert daemon.finished.wait(TIMEOUT_S)
     s = daemon.summary()
-    assert s["lost_in_transit"] == 4 and s["lost_by_rank"] == {"0": 4}
+    assert s["lost_in_transit"] == 4 and s["missing_by_rank"] == {"0": 4}
 
 
 def test_frames_and_timing_forged_by_another_peer_are_not_logged(daemon, client_factory,

@@ -169,7 +169,7 @@ def _server(args, spec, ctl, draw, session) -> int:
           file=sys.stderr, flush=True)
     while not stop.wait(0.2) and not coordinator.aborted.is_set():
         if args.exit_when_done and server.finished.is_set():
-            print("every rank has ended and the last step rendered", file=sys.stderr)
+            print("every rank is done and the last step rendered", file=sys.stderr)
             break
     if coordinator.aborted.is_set():
         print(f"minority serve: error: {coordinator.failure}; log closed: {server.summary()}",

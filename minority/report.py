@@ -20,7 +20,8 @@ MAX_STEP_ROWS = 200  # per-step table rows printed (first and last half beyond t
 MAX_LISTED = 20  # step numbers listed inline
 MAX_TICKS = 12  # step labels on a plot's x axis
 SERVER_COUNTS = ("steps_rendered", "steps_skipped", "timed_out", "evicted", "late", "duplicates",
-                 "inbox_dropped", "rejected", "view_errors", "frames", "chunks")
+                 "inbox_dropped", "queued_at_stop", "lost_in_transit", "ranks_lost", "rejected",
+                 "view_errors", "frames", "chunks")
 
 Notice = Callable[[str], None]  # where one-line warnings go (the CLI: stderr)
 

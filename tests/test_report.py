@@ -64,6 +64,7 @@ def write_log(path, *, events: bool = True, timings: bool = True, spec: bool = F
             w.write(Event(run, EventKind.RUN_END, -1, "render server stopping",
                           {"chunks": 7, "steps_rendered": 3, "steps_skipped": 1, "timed_out": 1,
                            "evicted": 0, "late": 0, "duplicates": 0, "inbox_dropped": 0,
+                           "queued_at_stop": 0, "lost_in_transit": 0, "ranks_lost": [1],
                            "rejected": 0, "view_errors": 1, "frames": 6}))
     return path
 
@@ -129,6 +130,7 @@ def test_markdown_holds_the_numbers(log_path):
                  "- incomplete rendered steps: 1; step 40: 1 of 2 ranks",
                  "- steps with chunks in the log but not rendered: 1 (80)",
                  "steps_skipped 1, timed_out 1",
+                 "inbox_dropped 0, queued_at_stop 0, lost_in_transit 0, ranks_lost [1]",
                  "chunks scheduled 8, sent 7, dropped 1", "- error events: 1",
                  "| 40 | 0.0040 | 2 | 20.000 | 4.000 | 16.000 | 40.000 | 50 | 1/2 incomplete "
                  "| 1.000 | 16.000 |"]:

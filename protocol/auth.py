@@ -5,10 +5,22 @@ A server (the listening peer of the embedded default) creates, or reuses, a rand
 per local endpoint it listens on, in `credentials_dir()/{protocol}-{port}.usrpwd` (mode 600
 in a mode 700 directory; one line `minority:PASSWORD`, the format of zenoh's
 `transport/auth/usrpwd/dictionary_file`). Clients of the same user that connect to a local
-endpoint (127.0.0.1, localhost, ::1) read the file for that endpoint and authenticate. A peer
-without the password is refused when it opens its link, before it can subscribe, put, query
-or declare a liveliness token, so it can neither forge messages into a run nor read one.
-The password is kept across server restarts, so ranks whose server restarts reconnect.
+endpoint (an address of this host: loopback, a wildcard, one of its interfaces) read the file for
+that endpoint and authenticate. A peer without the password is refused when it opens its
+link, before it can subscribe, put, query or declare a liveliness token, so it can neither
+forge messages into a run nor read one. The password is kept across server restarts, so
+ranks whose server restarts reconnect.
+
+The other direction, a client that must not talk to an impostor: zenoh's user/password
+handshake proves the client to the server, never the server to the client; any process may
+listen on a free local port and accept a client that offers a password. So a client of the
+embedded default connects to a local endpoint only when (1) the endpoint's password file
+exists (the server of this user wrote it; with none, `client_credentials` raises
+NoCredentialsError, whose message names the endpoint, the file and the fixes) and (2) on
+Linux, the socket listening there belongs to this user (/proc/net/tcp; another user's
+raises ForeignServerError). The second closes the case of a stale file: this user's server
+stopped and another user took its port. `--no-auth` on a client waives both; `--credentials
+FILE` is a secret shared on purpose (perhaps with another user's server) and waives (2).
 
 Why the transport and not a token in each message's header: every subscriber of a run sees
 its headers, so a header token is known to any peer that can connect at all; refusing the
@@ -19,21 +31,36 @@ pass the same file to both sides with `--credentials FILE`.
 
 from __future__ import annotations
 
+import functools
+import ipaddress
 import os
 import re
 import secrets
+import socket
 import stat
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 AUTH_USER = "minority"
 CREDENTIALS_ENV = "MINORITY_CREDENTIALS_DIR"  # overrides credentials_dir() (tests, services)
-LOCAL_HOSTS = {"127.0.0.1", "localhost", "0.0.0.0", "::1", "::"}
 _ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z]+)/(?P<host>\[[^\]]*\]|[^:/]+):(?P<port>\d{1,5})")
+TCP_PROTOCOLS = {"tcp", "tls", "ws"}  # links over TCP: their listeners are in /proc/net/tcp*
+FIXES = ("start `minority serve` first (a client waits for it with --wait S), or pass --no-auth "
+         "to the server and its clients, or --credentials FILE to both")
 
 
 class CredentialsError(OSError):
     """A credentials file that cannot be used (unsafe permissions, another owner, garbled)."""
+
+
+class NoCredentialsError(CredentialsError):
+    """A local endpoint without its password file: the peer there cannot be authenticated
+    (no server of this user has started there), so a client sends nothing to it."""
+
+
+class ForeignServerError(CredentialsError):
+    """A local endpoint whose listening socket belongs to another user."""
 
 
 @dataclass(frozen=True)
@@ -51,11 +78,48 @@ def credentials_dir() -> Path:
     return (Path(runtime) if runtime else Path.home() / ".cache") / "minority"
 
 
+@functools.lru_cache(maxsize=64)
+def host_addresses(host: str) -> tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, ...]:
+    """The addresses of this host that `host` (an endpoint's host: an IP, `[v6]` or a name)
+    stands for, as a connection to it reaches them (a wildcard reaches loopback); () for a
+    host that is not this one or does not resolve."""
+    host = host.strip("[]").split("%")[0]
+    try:
+        ips = [ipaddress.ip_address(host)]
+    except ValueError:
+        try:
+            ips = [ipaddress.ip_address(info[4][0].split("%")[0])
+                   for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)]
+        except (OSError, UnicodeError, ValueError):
+            return ()
+    local = []
+    for ip in ips:
+        if ip.version == 6 and ip.ipv4_mapped is not None:
+            ip = ip.ipv4_mapped
+        if ip.is_unspecified:
+            ip = ipaddress.ip_address("127.0.0.1" if ip.version == 4 else "::1")
+        if ip.is_loopback or _assigned_here(ip):
+            local.append(ip)
+    return tuple(dict.fromkeys(local))
+
+
+def _assigned_here(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    """Whether `ip` is an address of one of this host's interfaces (binding to it works)."""
+    family = socket.AF_INET if ip.version == 4 else socket.AF_INET6
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            s.bind((str(ip), 0))
+        return True
+    except OSError:
+        return False
+
+
 def credentials_path(endpoint: str) -> Path | None:
-    """The file of a local endpoint (`tcp/127.0.0.1:7447` -> `tcp-7447.usrpwd`); None for
-    an endpoint on another host (its password is not ours to send)."""
+    """The file of a local endpoint (`tcp/127.0.0.1:7447` -> `tcp-7447.usrpwd`; local: an
+    address of this host); None for an endpoint on another host (its password is not ours
+    to send) or one that is not host:port (a unix socket: its directory guards it)."""
     m = _ENDPOINT_RE.match(endpoint)
-    if m is None or m["host"].strip("[]") not in LOCAL_HOSTS:
+    if m is None or not host_addresses(m["host"]):
         return None
     return credentials_dir() / f"{m['proto']}-{int(m['port'])}.usrpwd"
 
@@ -116,10 +180,78 @@ def forget_server_credentials(listen: list[str]) -> None:
         path.unlink(missing_ok=True)
 
 
-def client_credentials(connect: list[str]) -> Credentials | None:
-    """The credentials for the first local endpoint in `connect` that has a file; None when
-    there is none (the server then needs no password, or the connection is refused)."""
-    for path in filter(None, map(credentials_path, connect)):
-        if path.exists():
-            return read_credentials(path)
-    return None
+def client_credentials(connect: list[str], required: bool = True) -> Credentials | None:
+    """The credentials a client sends to the endpoints in `connect`: those of the first local
+    endpoint's file; None when no endpoint is local.
+
+    required (the default; --no-auth waives it): every local endpoint must be authenticated
+    before anything is sent to it, since zenoh may connect to any of them: its file must exist
+    (else NoCredentialsError) and, where the system says (Linux), the socket listening there
+    must be this user's (else ForeignServerError). Not required: the first file found, or
+    None (the server then needs no password, or refuses the link)."""
+    found = None
+    for endpoint in connect:
+        path = credentials_path(endpoint)
+        if path is None:
+            continue
+        if not path.exists():
+            if required:
+                raise NoCredentialsError(
+                    f"{endpoint}: no password file {path}, so the server there cannot be "
+                    f"authenticated and nothing is sent to it (another user's process may "
+                    f"be listening): {FIXES}")
+            continue
+        creds = read_credentials(path)
+        if required:
+            check_listener(endpoint, path)
+        found = found or creds
+    return found
+
+
+def check_listener(endpoint: str, path: Path) -> None:
+    """Raise ForeignServerError when the TCP socket listening at local `endpoint` belongs to
+    another user (its password file `path` is then stale: this user's server is gone)."""
+    others = listener_uids(endpoint) - {os.getuid()}
+    if others:
+        raise ForeignServerError(
+            f"{endpoint}: the socket listening there belongs to another user (uid "
+            f"{', '.join(map(str, sorted(others)))}), not to the server that wrote {path}; "
+            f"nothing is sent to it: stop that process, or use another port")
+
+
+def listener_uids(endpoint: str) -> set[int]:
+    """The owners (uids) of the TCP sockets of this host listening where a connection to
+    `endpoint` lands: its address, or a wildcard, on its port. Empty when none listens, when
+    the endpoint is not a local TCP one, or when the system does not say (no /proc/net)."""
+    m = _ENDPOINT_RE.match(endpoint)
+    if m is None or m["proto"] not in TCP_PROTOCOLS:
+        return set()
+    port, targets = int(m["port"]), set(host_addresses(m["host"]))
+    uids = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            with open(table, encoding="ascii") as f:
+                rows = f.read().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            cols = row.split()
+            if len(cols) < 8 or cols[3] != "0A":  # 0A: TCP_LISTEN
+                continue
+            addr_hex, _, port_hex = cols[1].partition(":")
+            if int(port_hex, 16) != port:
+                continue
+            ip = _proc_address(addr_hex)
+            if ip.version == 6 and ip.ipv4_mapped is not None:
+                ip = ip.ipv4_mapped
+            if ip.is_unspecified or ip in targets:
+                uids.add(int(cols[7]))
+    return uids
+
+
+def _proc_address(hex_addr: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    """An address as /proc/net/tcp* writes it: 32-bit words in the host's byte order."""
+    raw = bytes.fromhex(hex_addr)
+    if sys.byteorder == "little":
+        raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))
+    return ipaddress.ip_address(raw)

@@ -4,9 +4,10 @@ and the explicit QoS of each message stream.
 Embedded default (one machine, no router to install): the render server is a peer that
 listens on tcp/127.0.0.1:7447; ranks, recorders and replays are clients that connect to
 it. Multicast scouting is off. The server requires a password that it keeps in a file only
-its user can read, and local clients send it (protocol.auth). Shared memory is on, with an
-implicit-SHM pool large enough for a 1M-particle chunk, so large puts between processes on
-one host skip the TCP copy.
+its user can read, and local clients send it (protocol.auth); a client connects to a local
+endpoint only when that file exists and the listening socket is its user's, so another
+user's process on the port receives nothing. Shared memory is on, with an implicit-SHM pool large enough for a 1M-particle chunk, so large puts
+between processes on one host skip the TCP copy.
 zenoh writes the whole pool when a session first puts through it (about 3 ms of CPU per
 MiB here), so a sender that knows its largest message sizes the pool with `shm_pool_for`.
 """
@@ -27,6 +28,7 @@ from pathlib import Path
 import zenoh
 from minority.protocol.auth import (
     Credentials,
+    NoCredentialsError,
     client_credentials,
     credentials_dir,
     forget_server_credentials,
@@ -87,7 +89,9 @@ def add_network_args(parser: argparse.ArgumentParser) -> None:
                         "client sends it (default: on one host, the server makes one per "
                         f"endpoint in {credentials_dir()} and local clients read it)")
     g.add_argument("--no-auth", action="store_true",
-                   help="a listening peer lets any peer connect without credentials")
+                   help="no password: a listening peer lets any peer connect, and a client "
+                        "connects to a local endpoint that has no password file (whoever "
+                        "listens there gets what it sends)")
 
 
 def options_from_args(args: argparse.Namespace) -> NetworkOptions:
@@ -98,7 +102,9 @@ def options_from_args(args: argparse.Namespace) -> NetworkOptions:
 def with_credentials(opts: NetworkOptions, role: Role) -> NetworkOptions:
     """Resolve the credentials of the embedded default (protocol.auth): a server makes or
     reuses its endpoints' password (or, with auth off, removes their files); a client reads
-    the file of the local endpoint it connects to. A --config file decides for itself."""
+    the file of the local endpoints it connects to, and with auth on refuses one it cannot
+    authenticate (NoCredentialsError, ForeignServerError). A --config file decides for
+    itself."""
     if opts.credentials is not None:
         return opts
     if opts.credentials_file is not None:
@@ -111,8 +117,8 @@ def with_credentials(opts: NetworkOptions, role: Role) -> NetworkOptions:
             forget_server_credentials(listen)
             return opts
         return dataclasses.replace(opts, credentials=server_credentials(listen))
-    return dataclasses.replace(opts, credentials=client_credentials(opts.connect or
-                                                                    [DEFAULT_ENDPOINT]))
+    return dataclasses.replace(opts, credentials=client_credentials(
+        opts.connect or [DEFAULT_ENDPOINT], required=opts.auth))
 
 
 def _put(cfg: zenoh.Config, key: str, value) -> None:
@@ -164,9 +170,12 @@ def open_session(opts: NetworkOptions | None = None, role: Role = Role.CLIENT,
                  configure: Callable[[zenoh.Config], None] | None = None) -> zenoh.Session:
     """Open a zenoh session (`configure` may edit the config first). A client keeps trying
     for opts.connect_timeout_s, in attempts that each read the server's credentials anew (a
-    server started at the same moment writes them first). A client with no server to
-    connect to, or refused by it (no or wrong credentials), raises zenoh.ZError; an unusable
-    credentials file raises CredentialsError."""
+    server started at the same moment writes them first; a client started before it waits
+    for the file). A client with no server to connect to, or refused by it (wrong
+    credentials), raises zenoh.ZError; one that cannot authenticate a local endpoint (no
+    password file by the deadline: NoCredentialsError; another user's listener:
+    ForeignServerError) or has an unusable credentials file raises CredentialsError, before
+    any session is opened."""
     opts = opts or NetworkOptions()
     deadline = time.monotonic() + opts.connect_timeout_s
     while True:
@@ -175,7 +184,17 @@ def open_session(opts: NetworkOptions | None = None, role: Role = Role.CLIENT,
         if role is Role.CLIENT and opts.connect_timeout_s > 0:
             attempt = dataclasses.replace(opts, connect_timeout_s=max(min(left, CONNECT_ATTEMPT_S),
                                                                       0.01))
-        cfg = make_config(with_credentials(attempt, role), role)
+        try:
+            resolved = with_credentials(attempt, role)
+        except NoCredentialsError as exc:
+            if role is not Role.CLIENT or time.monotonic() >= deadline:
+                if opts.connect_timeout_s > 0:
+                    raise NoCredentialsError(f"{exc} (waited {opts.connect_timeout_s:g} s for "
+                                             f"the file)") from None
+                raise
+            threading.Event().wait(RETRY_WAIT_S)
+            continue
+        cfg = make_config(resolved, role)
         if configure is not None:
             configure(cfg)
         try:

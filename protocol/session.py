@@ -6,7 +6,10 @@ listens on tcp/127.0.0.1:7447; ranks, recorders and replays are clients that con
 it. Multicast scouting is off. The server requires a password that it keeps in a file only
 its user can read, and local clients send it (protocol.auth); a client connects to a local
 endpoint only when that file exists and the listening socket is its user's, so another
-user's process on the port receives nothing. Shared memory is on, with an implicit-SHM pool large enough for a 1M-particle chunk, so large puts
+user's process on the port receives nothing. Connections that have not finished zenoh's
+handshake are bounded in number and time (ACCEPT_PENDING, ACCEPT_TIMEOUT_MS), so idle
+connections from anyone who can reach the port cannot lock clients out for long. Shared
+memory is on, with an implicit-SHM pool large enough for a 1M-particle chunk, so large puts
 between processes on one host skip the TCP copy.
 zenoh writes the whole pool when a session first puts through it (about 3 ms of CPU per
 MiB here), so a sender that knows its largest message sizes the pool with `shm_pool_for`.
@@ -48,6 +51,17 @@ SHM_THRESHOLD_BYTES = 3072  # messages above this size go through shared memory 
 TX_QUEUE_BATCHES = {"control": 2, "real_time": 2, "interactive_high": 4, "interactive_low": 4,
                     "data_high": 8, "data": 16, "data_low": 8, "background": 2}
 DROP_WAIT_US = 1000  # with DROP congestion control, wait this long for room before dropping
+# A listener's connections that have not finished zenoh's handshake (with the password):
+# zenoh closes one after ACCEPT_TIMEOUT_MS, and closes a new one at once while
+# ACCEPT_PENDING are open. With zenoh's defaults (10 s, 100), 150 idle sockets from any local
+# process lock clients out for 10 s (a client with --wait 30 got in after 10.1 s); with these
+# they take no client's place (tests/test_flood.py). A client's handshake on one host takes
+# milliseconds. 512 stays within the common 1024 open-file limit with room for the server's
+# own files. A flood beyond 512 delays a retrying client about ACCEPT_TIMEOUT_MS plus the time
+# the server takes to accept them (600 idle: in 2.3-4.2 s here); a flood that reconnects as
+# fast as it is closed is not bounded so.
+ACCEPT_TIMEOUT_MS = 2000
+ACCEPT_PENDING = 512
 
 
 class Role(StrEnum):
@@ -141,6 +155,8 @@ def make_config(opts: NetworkOptions, role: Role) -> zenoh.Config:
         _put(cfg, "transport/link/tx/queue/size", TX_QUEUE_BATCHES)
         _put(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop", DROP_WAIT_US)
         if role is Role.SERVER:
+            _put(cfg, "transport/unicast/accept_timeout", ACCEPT_TIMEOUT_MS)
+            _put(cfg, "transport/unicast/accept_pending", ACCEPT_PENDING)
             _put(cfg, "listen/endpoints", opts.listen or [DEFAULT_ENDPOINT])
         else:
             _put(cfg, "listen/endpoints", opts.listen)

@@ -9,6 +9,8 @@ import pytest
 import zenoh
 from conftest import free_port
 from minority.protocol.session import (
+    ACCEPT_PENDING,
+    ACCEPT_TIMEOUT_MS,
     CHUNK_QOS,
     CONTROL_QOS,
     DEFAULT_ENDPOINT,
@@ -39,6 +41,9 @@ def test_embedded_server_defaults():
     shm = get(cfg, "transport/shared_memory")
     assert shm["enabled"] and shm["transport_optimization"]["pool_size"] == SHM_POOL_BYTES
     assert SHM_POOL_BYTES >= 2 * 1_000_000 * (12 + 4 * 4)  # two 1M-particle chunks with 4 fields
+    # unauthenticated connections: bounded in time and number (tests/test_flood.py)
+    assert get(cfg, "transport/unicast/accept_timeout") == ACCEPT_TIMEOUT_MS
+    assert get(cfg, "transport/unicast/accept_pending") == ACCEPT_PENDING
 
 
 def test_the_shared_memory_pool_is_sized_for_two_of_the_largest_messages():
@@ -81,6 +86,10 @@ def test_shipped_config_files_load(name, role):
     cfg = make_config(NetworkOptions(config=DEPLOY / name), role)
     assert get(cfg, "mode") == ("peer" if role is Role.SERVER else "client")
     assert get(cfg, "scouting/multicast/enabled") is False
+    if role is Role.SERVER:  # bounds unauthenticated connections as the embedded default does
+        embedded = make_config(NetworkOptions(), Role.SERVER)
+        for key in ("accept_timeout", "accept_pending"):
+            assert get(cfg, f"transport/unicast/{key}") == get(embedded, f"transport/unicast/{key}")
 
 
 def test_config_files_with_endpoint_overrides_connect():

@@ -9,12 +9,23 @@ Malformed messages go to `minority/_rejected` with the reason, never to a data t
 log_time is the arrival time and publish_time the sender's stamp, both ns since the epoch.
 The writer closes an MCAP chunk at least every `flush_interval_s`, so a recorder killed
 with SIGKILL leaves a file whose completed chunks the reader still returns.
+
+A full disk ends a log cleanly: each chunk goes to disk in one write, after `fallocate` has
+reserved its bytes and room for the summary past them (`_LogFile`). A write that fails
+(ENOSPC, or any error) ends the file at its last complete chunk and writes the summary and
+footer there, into the reserved room (`repair.end_in_place`), so every MCAP reader opens it;
+the messages of the chunk that failed are counted in `unwritten`, never in `written`.
 """
 
 from __future__ import annotations
 
 import base64
+import ctypes
+import errno
+import functools
+import io
 import json
+import os
 import struct
 import sys
 import threading
@@ -37,6 +48,7 @@ from minority.protocol.logread import (  # noqa: F401 - the reader's names, impo
     topic_counts,
 )
 from minority.protocol.messages import Chunk, Event, Frame, Stats, Timing, decode_as
+from minority.protocol.repair import end_in_place
 from minority.protocol.schemas import JSON_SCHEMAS, WIRE_ENCODING, WIRE_SCHEMA, Rejected
 from minority.protocol.session import Inbox
 from minority.protocol.spec import Spec
@@ -50,6 +62,20 @@ _BY_TOPIC = {keys.Topic.CHUNK: Chunk, keys.Topic.SPEC: Spec, keys.Topic.FRAME: F
 
 
 MAX_TIME_NS = (1 << 63) - 1  # log and publish times are u64 in MCAP; ours are non-negative i64
+_NEVER = 1 << 62  # bytes: the mcap Writer's own chunk limit; LogWriter closes its chunks itself
+_RECORD_BYTES = 64  # bytes: a bound on a message record's framing inside a chunk (31 in MCAP 0)
+# A bound on the summary `repair.end_in_place` writes (data end, schemas and channels again,
+# statistics, chunk and metadata indexes, summary offsets, footer, magic), in bytes: a fixed
+# part, each schema and channel record twice, per chunk index 128 and 16 per channel (its
+# message index offset; the statistics' count), where the records themselves take 75 + 10.
+_SUMMARY_FIXED_BYTES = 4096
+_CHUNK_INDEX_BYTES = 128
+_PER_CHANNEL_BYTES = 16
+_IOV_MAX = 1024  # buffers one pwritev takes (Linux's UIO_MAXIOV)
+_FALLOC_FL_KEEP_SIZE = 0x01  # linux/falloc.h: allocate blocks, leave the file's size
+_RESERVE_STEP_BYTES = 1 << 20  # bytes: blocks are reserved in steps this long (ext4, given
+#   a few kB per call, scattered a 320 kB log over 27 extents); a killed writer leaves at
+#   most this and the summary's room allocated past its file's end
 
 
 def free_log_path(path: str | Path) -> Path:
@@ -64,39 +90,179 @@ def free_log_path(path: str | Path) -> Path:
         k += 1
 
 
+@functools.cache
+def _fallocate():
+    """libc's fallocate(2) (Linux only; None elsewhere): os has posix_fallocate, which
+    cannot keep the file's size."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        call = getattr(libc, "fallocate64", None) or libc.fallocate
+    except (OSError, AttributeError):
+        return None
+    call.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+    call.restype = ctypes.c_int
+    return call
+
+
+class _LogFile:
+    """The log's file as the mcap Writer's output stream. What the Writer writes is held
+    until it flushes (a chunk with its message indexes, the header, the summary) and then
+    written at once, so the file always ends at a complete unit: `committed` bytes.
+
+    Before each write, `fallocate(FALLOC_FL_KEEP_SIZE)` allocates the blocks for it and for
+    `reserve()` bytes past it: the room the summary needs if the next write fails. KEEP_SIZE
+    leaves the file's size that of its data (a reader of the live file sees no padding); the
+    room is in this file, so nothing else on the disk can take it, and truncating the file
+    at its end releases what the summary did not use. Where fallocate is not supported
+    (`reserving` False) the summary gets whatever room the failed write leaves.
+    """
+
+    def __init__(self, path: Path, overwrite: bool, reserve):
+        self.raw = io.FileIO(path, "w+" if overwrite else "x+")
+        self.fd = self.raw.fileno()
+        self.committed = 0      # bytes: on disk, whole units
+        self.reserved_to = 0    # bytes: blocks allocated up to here
+        self.reserving = _fallocate() is not None
+        self._reserve = reserve  # () -> bytes to keep allocated past the data
+        self._pending: list[bytes] = []
+        self._pending_bytes = 0
+
+    @property
+    def closed(self) -> bool:
+        return self.raw.closed
+
+    def write(self, data) -> int:
+        self._pending.append(bytes(data))
+        self._pending_bytes += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.committed + self._pending_bytes
+
+    def flush(self) -> None:
+        self.commit()
+
+    def commit(self, keep_reserve: bool = True) -> None:
+        """Write what the Writer has written since the last commit, with the room for the
+        summary past it allocated first (`keep_reserve`; the summary itself needs none).
+        Raises OSError (ENOSPC when that room cannot be allocated: nothing is written)."""
+        if not self._pending:
+            return
+        views, size = [memoryview(b) for b in self._pending], self._pending_bytes
+        self._pending.clear()
+        self._pending_bytes = 0
+        self._allocate(self.committed + size + (self._reserve() if keep_reserve else 0))
+        at = self.committed
+        while views:  # pwritev: no joined copy (it cost 20 % of a 1 MB message's write)
+            n = os.pwritev(self.fd, views[:_IOV_MAX], at)
+            at += n
+            while views and n >= len(views[0]):
+                n -= len(views.pop(0))
+            if n:
+                views[0] = views[0][n:]
+        self.committed = at
+
+    def _allocate(self, end: int) -> None:
+        """Blocks up to `end` at least: up to the next multiple of _RESERVE_STEP_BYTES, or
+        exactly to `end` when there is no room for that."""
+        if not self.reserving or end <= self.reserved_to:
+            return
+        for to in (-(-end // _RESERVE_STEP_BYTES) * _RESERVE_STEP_BYTES, end):
+            if _fallocate()(self.fd, _FALLOC_FL_KEEP_SIZE, self.reserved_to,
+                            to - self.reserved_to) == 0:
+                self.reserved_to = to
+                return
+            code = ctypes.get_errno()
+            if code in (errno.EOPNOTSUPP, errno.ENOSYS):
+                self.reserving = False
+                return
+        raise OSError(code, f"{os.strerror(code)} (reserving {end - self.committed} bytes "
+                      f"past byte {self.committed}: the next chunk and room for the summary)")
+
+    def release(self) -> None:
+        """Cut the file to its committed bytes: frees what is reserved past them."""
+        self._pending.clear()
+        self._pending_bytes = 0
+        os.ftruncate(self.fd, self.committed)
+        self.reserved_to = self.committed
+
+    def close(self) -> None:
+        self.raw.close()
+
+
 class LogWriter:
-    """Writes messages to an MCAP file with schemas and channel metadata. The file must not
-    exist (FileExistsError otherwise; see free_log_path) unless `overwrite` is set."""
+    """Writes messages to an MCAP file with schemas and channel metadata.
+
+    :param path: the log; it must not exist (FileExistsError; see free_log_path) unless
+        `overwrite` is set.
+    :param compression: of each chunk.
+    :param flush_interval_s: a chunk is closed and written at least this often, s.
+    :param chunk_bytes: a chunk is closed once its messages pass this size, bytes.
+    :param metadata: key-value strings stored in the log's "minority" metadata record.
+    :param overwrite: replace a file at `path`.
+
+    The header, the metadata and the room the summary needs are written at once: a log that
+    cannot start (a full disk) raises OSError naming the problem and leaves no file.
+    `written` and `rejected` count the messages in the file or in its open chunk; a failed
+    write moves the open chunk's to `unwritten` (see keep, finish).
+    """
 
     def __init__(self, path: str | Path, *, compression: CompressionType = CompressionType.NONE,
                  flush_interval_s: float = 0.5, chunk_bytes: int = 4 << 20,
                  metadata: dict[str, str] | None = None, overwrite: bool = False):
         self.path = Path(path)
-        self._file = open(self.path, "wb" if overwrite else "xb")  # noqa: SIM115 (see close())
-        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=compression)
-        self._writer.start(profile=PROFILE, library="minority")
-        self._writer.add_metadata("minority", {"wire_format": WIRE_ENCODING,
-                                               "created_ns": str(time.time_ns()),
-                                               **(metadata or {})})
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._record_bytes = 0   # bytes of the schema and channel records registered
+        self._chunks = 0         # chunks written
+        self._chunk_bytes = chunk_bytes
+        self._open_bytes = 0     # bytes: a bound on the open chunk's size
+        self._open_written = self._open_rejected = 0  # messages in the open chunk
         self._flush_interval_s = flush_interval_s
         self._last_flush = time.monotonic()
         self._lock = threading.Lock()
         self.written = 0
         self.rejected = 0
-        self.failure = ""  # why the file ended early (a failed write); "" while writing
-        self.unwritten = 0  # messages not written: the failed one and all after it
+        self.failure = ""  # why the file ended early ("ENOSPC: ..."); "" while writing
+        self.unwritten = 0  # messages not in the file: the open chunk's at a failure, and after
+        self.ending = ""  # after a failure: how the file ends
+        self._failure_errno: int | None = None
+        self._complete = False  # closed with its summary, every message in it
+        self._file = _LogFile(self.path, overwrite, self._summary_bound)
+        try:
+            self._writer = Writer(self._file, chunk_size=_NEVER, compression=compression)
+            self._writer.start(profile=PROFILE, library="minority")
+            self._writer.add_metadata("minority", {"wire_format": WIRE_ENCODING,
+                                                   "created_ns": str(time.time_ns()),
+                                                   **(metadata or {})})
+            self._writer.flush()  # on disk now, with the summary's room
+        except BaseException as exc:
+            self._file.close()
+            self.path.unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise OSError(exc.errno, f"cannot start the log {self.path}: "
+                              f"{_describe(exc)}; no file left") from exc
+            raise
+
+    def _summary_bound(self) -> int:
+        """Bytes the summary would take if the chunk being written were the last one."""
+        return (_SUMMARY_FIXED_BYTES + 2 * self._record_bytes
+                + (self._chunks + 1) * (_CHUNK_INDEX_BYTES + _PER_CHANNEL_BYTES * len(self._channels))
+                + _PER_CHANNEL_BYTES * len(self._channels))
 
     def _channel(self, topic: str, schema_name: str, encoding: str, meta: dict[str, str]) -> int:
         if topic not in self._channels:
             if schema_name not in self._schemas:
                 if schema_name == "minority.Chunk":
-                    self._schemas[schema_name] = self._writer.register_schema(
-                        schema_name, WIRE_ENCODING, WIRE_SCHEMA.encode())
+                    schema = WIRE_ENCODING, WIRE_SCHEMA.encode()
                 else:
-                    self._schemas[schema_name] = self._writer.register_schema(
-                        schema_name, "jsonschema", json.dumps(JSON_SCHEMAS[schema_name]).encode())
+                    schema = "jsonschema", json.dumps(JSON_SCHEMAS[schema_name]).encode()
+                self._record_bytes += 64 + len(schema_name) + len(schema[0]) + len(schema[1])
+                self._schemas[schema_name] = self._writer.register_schema(schema_name, *schema)
+            self._record_bytes += 64 + len(topic) + len(encoding) + sum(
+                8 + len(k) + len(v) for k, v in meta.items())
             self._channels[topic] = self._writer.register_channel(
                 topic, encoding, self._schemas[schema_name], meta)
         return self._channels[topic]
@@ -104,7 +270,8 @@ class LogWriter:
     def write_payload(self, key: str, payload: bytes, log_ns: int | None = None,
                       message=None) -> str:
         """Validate and log one received payload (`message`: its decoded form, when the
-        caller has decoded it already); returns the topic it went to."""
+        caller has decoded it already); returns the topic it went to. A failed write ends
+        the log (see keep) and raises OSError; so does any write after it."""
         log_ns = time.time_ns() if log_ns is None else log_ns
         if not 0 <= log_ns <= MAX_TIME_NS:
             raise ValueError(f"log time {log_ns} ns is outside [0, {MAX_TIME_NS}]")
@@ -113,10 +280,7 @@ class LogWriter:
         except ProtocolError as exc:
             return self._reject(key, payload, str(exc), log_ns)
         with self._lock:
-            self._writer.add_message(self._channel(topic, schema, encoding, meta), log_ns, data,
-                                     sent_ns)
-            self.written += 1
-            self._maybe_flush()
+            self._add(lambda: self._channel(topic, schema, encoding, meta), log_ns, data, sent_ns)
         return topic
 
     def write(self, message, key: str | None = None, log_ns: int | None = None) -> str:
@@ -148,37 +312,117 @@ class LogWriter:
         record = Rejected(str(key)[:1024], reason, len(payload),
                           base64.b64encode(payload).decode("ascii"))
         with self._lock:
-            channel = self._channel(REJECTED_TOPIC, "minority.Rejected", JSON_ENCODING,
-                                    {"kind": "rejected"})
-            self._writer.add_message(channel, log_ns, msgspec.json.encode(record), sent_ns)
-            self.rejected += 1
-            self._maybe_flush()
+            self._add(lambda: self._channel(REJECTED_TOPIC, "minority.Rejected", JSON_ENCODING,
+                                            {"kind": "rejected"}),
+                      log_ns, msgspec.json.encode(record), sent_ns, rejected=True)
         return REJECTED_TOPIC
 
-    def _maybe_flush(self) -> None:
-        if time.monotonic() - self._last_flush >= self._flush_interval_s:
-            self._flush_locked()
+    def _add(self, channel, log_ns: int, data: bytes, sent_ns: int, rejected: bool = False) -> None:
+        """Add one message to the open chunk (lock held); write the chunk when it is full or
+        due. A failure ends the log and is raised."""
+        if self.failure:
+            self.unwritten += 1
+            raise self._ended()
+        added = False
+        try:
+            self._writer.add_message(channel(), log_ns, data, sent_ns)
+            added = True
+            if rejected:
+                self.rejected += 1
+                self._open_rejected += 1
+            else:
+                self.written += 1
+                self._open_written += 1
+            self._open_bytes += len(data) + _RECORD_BYTES
+            if (self._open_bytes > self._chunk_bytes
+                    or time.monotonic() - self._last_flush >= self._flush_interval_s):
+                self._flush_locked()
+        except Exception as exc:
+            self.unwritten += not added
+            self._fail_locked(exc)
+            raise
 
     def _flush_locked(self) -> None:
-        self._writer.flush()
+        self._writer.flush()  # closes the open chunk; _LogFile writes it
+        self._chunks += (self._open_written + self._open_rejected) > 0
+        self._open_written = self._open_rejected = self._open_bytes = 0
         self._last_flush = time.monotonic()
 
     def flush(self) -> None:
-        """Close the open MCAP chunk and push it to the OS."""
+        """Close the open MCAP chunk and write it. A failure ends the log and is raised."""
         with self._lock:
-            self._flush_locked()
+            if self.failure:
+                raise self._ended()
+            try:
+                self._flush_locked()
+            except Exception as exc:
+                self._fail_locked(exc)
+                raise
+
+    def _ended(self) -> OSError:
+        return OSError(self._failure_errno or errno.EIO,
+                       f"{self.path}: the log has ended: {self.failure}")
+
+    def _fail_locked(self, exc: BaseException) -> None:
+        """End the log after a failure: the file is cut back to its last complete chunk and
+        given its summary and footer in place (in the room reserved for them); the open
+        chunk's messages move to `unwritten`. Says so once on stderr."""
+        if self.failure:
+            return
+        self.failure = _describe(exc)
+        self._failure_errno = exc.errno if isinstance(exc, OSError) else None
+        self.written -= self._open_written
+        self.rejected -= self._open_rejected
+        self.unwritten += self._open_written + self._open_rejected
+        self._open_written = self._open_rejected = self._open_bytes = 0
+        if self._file.closed:
+            return
+        cut = self._file.committed
+        try:
+            kept = end_in_place(self._file.fd, cut)
+            self.ending = (f"it ends at its last complete chunk (byte {cut}, {kept.messages} "
+                           "messages) with its summary: MCAP readers open it")
+        except Exception as end_exc:  # noqa: BLE001 - whatever stops it, the file ends at the cut
+            try:
+                os.ftruncate(self._file.fd, cut)
+                self.ending = (f"it ends at its last complete chunk (byte {cut}) without its "
+                               f"summary ({_describe(end_exc)}): readers that scan it read "
+                               "it, `minority log repair` completes it")
+            except OSError as cut_exc:
+                self.ending = (f"it could not be cut back to its last complete chunk "
+                               f"(byte {cut}): {_describe(cut_exc)}")
+        finally:
+            self._file.close()
+        print(f"minority: cannot write {self.path}: {self.failure}; {self.ending}; "
+              f"{self.unwritten} messages not written (later ones are counted too)",
+              file=sys.stderr, flush=True)
 
     def close(self) -> None:
+        """Write the open chunk, the summary and the footer, and close. Raises OSError if the
+        log ended early or ends now (a full disk: the file ends at its last complete chunk,
+        with its summary, as keep says)."""
         with self._lock:
-            if not self._file.closed:
-                self._writer.finish()
+            if self.failure:
+                raise self._ended()
+            if self._file.closed:
+                return
+            try:
+                self._flush_locked()
+                self._writer.finish()  # DataEnd, summary, footer: held by _LogFile until
+                self._file.commit(keep_reserve=False)  # written into the reserved room
+                self._file.release()
                 self._file.close()
+            except Exception as exc:
+                self._fail_locked(exc)
+                raise
+            self._complete = True
 
     def keep(self, write, *args) -> bool:
         """Call one write method (write_payload, write, flush) for a long-running logger: the
         first failure (a full disk; or any unexpected error, after which the writer's state
-        is unknown) ends the file at its last complete chunk, says so once on stderr, and
-        every later message is counted in `unwritten`. Returns whether it was written."""
+        is unknown) ends the file at its last complete chunk with its summary, says so once
+        on stderr, and counts the messages lost and every later one in `unwritten`. Returns
+        whether it was written (into the open chunk, for a message)."""
         if self.failure:
             self.unwritten += write != self.flush
             return False
@@ -186,38 +430,58 @@ class LogWriter:
             write(*args)
             return True
         except Exception as exc:  # noqa: BLE001 - the logger outlives any one message
-            self.failure = f"{type(exc).__name__}: {exc}"
-            self.unwritten += write != self.flush
-            print(f"minority: cannot write {self.path}: {self.failure}; the log ends here (its "
-                  "complete chunks stay readable), later messages are counted as not written",
-                  file=sys.stderr, flush=True)
+            with self._lock:
+                if not self.failure:  # raised before the writer was reached
+                    self.unwritten += write != self.flush
+                    self._fail_locked(exc)
             return False
 
-    def finish(self) -> None:
-        """Close: with the MCAP summary, or as it is after a failure (see abandon)."""
+    def finish(self) -> bool:
+        """Close, with the summary. True when every message given to the log is in the file
+        and the file is complete; False after a failure, now or before (`failure` says why,
+        `unwritten` counts the messages not in the file, stderr said so), or after abandon.
+        Never raises for a failed write."""
         if not self.failure:
             try:
                 self.close()
-                return
-            except Exception as exc:  # noqa: BLE001
-                self.failure = f"{type(exc).__name__}: {exc}"
-        self.abandon()
+            except Exception:  # noqa: BLE001 - _fail_locked said it and set failure
+                pass
+        return self._complete
 
     def abandon(self) -> None:
-        """Close the file as it is, without the MCAP summary (after a failed write: the file
-        reads like a cut-short one, its complete chunks and nothing after them)."""
+        """Close the file as it is, without the MCAP summary (a killed writer's file: its
+        complete chunks and nothing after them; the open chunk's messages are counted in
+        `unwritten`). Nothing to do after a failure, which ended the file already."""
         with self._lock:
             if not self._file.closed:
+                self.written -= self._open_written
+                self.rejected -= self._open_rejected
+                self.unwritten += self._open_written + self._open_rejected
+                self._open_written = self._open_rejected = self._open_bytes = 0
                 try:
-                    self._file.close()
+                    self._file.release()
                 except OSError:
-                    pass  # the buffered tail could not be written either: it is lost
+                    pass  # the reserved room stays allocated past the file's end
+                self._file.close()
 
     def __enter__(self) -> LogWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # the exception in flight says what went wrong
+            self.finish()
+
+
+def _describe(exc: BaseException) -> str:
+    """`ENOSPC: No space left on device ...` for an OSError with an errno, else `Type: text`."""
+    if isinstance(exc, OSError) and exc.errno in errno.errorcode:
+        text = exc.strerror or str(exc)
+        if exc.filename is not None:
+            text = f"{text}: {exc.filename}"
+        return f"{errno.errorcode[exc.errno]}: {text}"
+    return f"{type(exc).__name__}: {exc}"
 
 
 def default_key(message) -> str:
@@ -268,11 +532,12 @@ class Recorder:
             else:
                 self.writer.keep(self.writer.write_payload, item.key, item.payload, item.recv_ns)
 
-    def close(self) -> None:
-        """Stop receiving, write what is queued, finish the file."""
+    def close(self) -> bool:
+        """Stop receiving, write what is queued, finish the file; whether every message
+        received is in it (LogWriter.finish: False after a failed write)."""
         self._inbox.close()
         self._stop.set()
         self._thread.join()
         while (item := self._inbox.get(timeout=0)) is not None:
             self.writer.keep(self.writer.write_payload, item.key, item.payload, item.recv_ns)
-        self.writer.finish()
+        return self.writer.finish()

@@ -8,11 +8,16 @@ record before it to a new, indexed MCAP: the same header, schemas, channels with
 metadata, messages (log_time, publish_time, sequence and data unchanged), metadata records
 and attachments, in the source's chunks and compression. A chunk is kept whole or not at
 all: its CRC is checked before any of its records is copied.
+
+`end_in_place` does the same inside the file itself, for a writer that failed on a full disk
+(protocol.log.LogWriter): the records before the cut stay as they are, and the data end,
+summary and footer the copy would have are written after them.
 """
 
 from __future__ import annotations
 
 import enum
+import io
 import os
 import stat
 import tempfile
@@ -35,7 +40,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 from minority.protocol.errors import ProtocolError
-from minority.protocol.log import MCAP_MAGIC
+from minority.protocol.logread import MCAP_MAGIC
 
 _COMPRESSION = {"": CompressionType.NONE, "lz4": CompressionType.LZ4,
                 "zstd": CompressionType.ZSTD}
@@ -127,6 +132,93 @@ def repair(src: str | Path, dst: str | Path) -> RepairResult:
             Path(tmp).unlink(missing_ok=True)
             raise
     return result
+
+
+def end_in_place(fd: int, end: int) -> RepairResult:
+    """Complete a log whose writer failed, in place: its first `end` bytes (the end of its
+    last complete chunk) are kept as they are, and the data end, summary and footer that
+    `repair` would write for them are written from `end`; the file is then cut after them.
+
+    :param fd: the log, open for reading and writing (its offset is not used).
+    :param end: bytes: where the readable records end; what follows is overwritten.
+
+    Nothing before `end` is written: the copy `repair` makes of those records is compared
+    with them byte for byte, and a difference (or an unreadable record before `end`) raises
+    ProtocolError with the file unchanged. CRCs are not checked on the way in: a record
+    damaged since it was written makes the copy differ (its CRC is computed anew), which the
+    comparison refuses. It reads the whole file: about 0.7 s per 100 MB on a loaded 2-core
+    machine. Needs room for the summary from `end` on (the
+    writer reserves it); a failed write raises OSError, the file then holds complete records
+    up to `end` and part of the summary after them.
+    """
+    source = io.BufferedReader(_Prefix(fd, end), buffer_size=1 << 20)
+    chunked, compression = _layout(source)
+    out = _InPlace(fd, end)
+    copy = _Copy(Writer(out, chunk_size=_MIRROR_CHUNKS, compression=compression,
+                        use_chunking=chunked), chunked, compression)
+    state, stopped_at, reason = _read(source, copy, end, validate=False)
+    if state is not LogState.TRUNCATED or stopped_at != end:
+        raise ProtocolError(f"the log's records are not whole up to byte {end}: "
+                            f"{reason or 'it has a footer'} (at byte {stopped_at})")
+    copy.finish()
+    os.ftruncate(fd, out.pos)
+    return _summary(state, stopped_at, end, reason, copy)
+
+
+class _Prefix(io.RawIOBase):
+    """The first `size` bytes of an open file, read with pread (the file's offset is left)."""
+
+    def __init__(self, fd: int, size: int):
+        self.fd, self.size, self.pos = fd, size, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        n = min(len(buffer), self.size - self.pos)
+        data = os.pread(self.fd, n, self.pos) if n > 0 else b""
+        buffer[:len(data)] = data
+        self.pos += len(data)
+        return len(data)
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        self.pos = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence] + offset
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+
+class _InPlace:
+    """An output stream for mcap's Writer over the file it reads: the bytes it writes before
+    `end` must be the file's own (checked, not written), the rest is written."""
+
+    def __init__(self, fd: int, end: int):
+        self.fd, self.end, self.pos = fd, end, 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        same = max(0, min(len(view), self.end - self.pos))
+        # compared as bytes (memcmp): a memoryview compares item by item, 4x slower in all
+        ours = data if same == len(view) and isinstance(data, bytes) else bytes(view[:same])
+        if same and os.pread(self.fd, same, self.pos) != ours:
+            raise ProtocolError(f"the copy of the log's records differs from them in bytes "
+                                f"{self.pos}-{self.pos + same}: nothing was written")
+        at, rest = self.pos + same, view[same:]
+        while rest:
+            n = os.pwrite(self.fd, rest, at)
+            at, rest = at + n, rest[n:]
+        self.pos += len(view)
+        return len(view)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        pass
 
 
 def _refuse_non_mcap(f: BinaryIO, path: Path) -> None:
@@ -244,11 +336,13 @@ class _Copy:
             self.writer.finish()
 
 
-def _read(f: BinaryIO, copy: _Copy) -> tuple[LogState, int, str]:
+def _read(f: BinaryIO, copy: _Copy, size: int | None = None,
+          validate: bool = True) -> tuple[LogState, int, str]:
     """Feed `copy` every record of `f` up to its footer or its first unreadable record; the
-    state, the end of the last record read whole (bytes) and why reading stopped."""
-    size = os.fstat(f.fileno()).st_size
-    records = StreamReader(f, emit_chunks=True, validate_crcs=True).records
+    state, the end of the last record read whole (bytes) and why reading stopped. `size`:
+    of `f` in bytes (its file's size when None); `validate`: check the CRCs."""
+    size = os.fstat(f.fileno()).st_size if size is None else size
+    records = StreamReader(f, emit_chunks=True, validate_crcs=validate).records
     stopped_at = 0
     in_summary = False  # past DataEnd: the summary repeats schemas and channels, then indexes
     while True:
@@ -266,7 +360,7 @@ def _read(f: BinaryIO, copy: _Copy) -> tuple[LogState, int, str]:
             return LogState.TRUNCATED, stopped_at, "the file ends inside a record"
         if isinstance(record, Chunk):
             try:  # a chunk is checked whole (CRC, decompression, its records) before any is copied
-                inner = breakup_chunk(record, validate_crc=True)
+                inner = breakup_chunk(record, validate_crc=validate)
             except Exception as exc:  # noqa: BLE001 - as above
                 return LogState.DAMAGED, stopped_at, f"damaged chunk: {_text(exc)}"
             copy.chunk(inner)
@@ -288,8 +382,12 @@ def _result(path: Path, f: BinaryIO, copy: _Copy) -> RepairResult:
     if state is LogState.COMPLETE and not is_complete(path):
         state = LogState.DAMAGED
         reason = "its footer or summary section is unreadable (make_reader refuses it)"
+    return _summary(state, stopped_at, os.fstat(f.fileno()).st_size, reason, copy)
+
+
+def _summary(state: LogState, stopped_at: int, size: int, reason: str, copy: _Copy) -> RepairResult:
     return RepairResult(state=state, messages=copy.messages, stopped_at=stopped_at,
-                        size=os.fstat(f.fileno()).st_size, reason=reason,
+                        size=size, reason=reason,
                         schemas=len(copy.schema_ids) - 1, channels=len(copy.channel_ids),
                         metadata=copy.metadata, attachments=copy.attachments,
                         chunks=copy.chunks, skipped=copy.skipped,

@@ -20,9 +20,16 @@ def test_network_flags_are_shared():
 
 
 def test_record_without_server_fails_clearly(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "minority", "record", "--connect",
-                           "tcp/127.0.0.1:9", "--wait", "0", "-o", str(tmp_path / "x.mcap")],
-                          capture_output=True, text=True, timeout=60)
+    """No password file for the endpoint: nothing is sent there; with --no-auth the client
+    tries and says it cannot reach it."""
+    argv = [sys.executable, "-m", "minority", "record", "--connect", "tcp/127.0.0.1:9",
+            "--wait", "0", "-o", str(tmp_path / "x.mcap")]
+    env = {**os.environ, "MINORITY_CREDENTIALS_DIR": str(tmp_path / "credentials")}
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, env=env)
+    assert proc.returncode == 1
+    assert "tcp/127.0.0.1:9: no password file" in proc.stderr
+    proc = subprocess.run(argv + ["--no-auth"], capture_output=True, text=True, timeout=60,
+                          env=env)
     assert proc.returncode == 1
     assert "cannot reach a zenoh peer at tcp/127.0.0.1:9" in proc.stderr
 

@@ -11,19 +11,17 @@ The writer closes an MCAP chunk at least every `flush_interval_s`, so a recorder
 with SIGKILL leaves a file whose completed chunks the reader still returns.
 
 A full disk ends a log cleanly: each chunk goes to disk in one write, after `fallocate` has
-reserved its bytes and room for the summary past them (`_LogFile`). A write that fails
-(ENOSPC, or any error) ends the file at its last complete chunk and writes the summary and
-footer there, into the reserved room (`repair.end_in_place`), so every MCAP reader opens it;
+reserved its bytes and room for the summary past them (protocol.logfile.ReservedFile). A
+write that fails (ENOSPC, or any error) ends the file at its last complete chunk and writes
+the summary and footer there, into the reserved room (`repair.end_in_place`), so every MCAP
+reader opens it;
 the messages of the chunk that failed are counted in `unwritten`, never in `written`.
 """
 
 from __future__ import annotations
 
 import base64
-import ctypes
 import errno
-import functools
-import io
 import json
 import os
 import struct
@@ -37,6 +35,7 @@ import zenoh
 from mcap.writer import CompressionType, Writer
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
+from minority.protocol.logfile import ReservedFile
 from minority.protocol.logread import (  # noqa: F401 - the reader's names, importable from here
     MCAP_MAGIC,
     LogDamagedWarning,
@@ -71,11 +70,6 @@ _RECORD_BYTES = 64  # bytes: a bound on a message record's framing inside a chun
 _SUMMARY_FIXED_BYTES = 4096
 _CHUNK_INDEX_BYTES = 128
 _PER_CHANNEL_BYTES = 16
-_IOV_MAX = 1024  # buffers one pwritev takes (Linux's UIO_MAXIOV)
-_FALLOC_FL_KEEP_SIZE = 0x01  # linux/falloc.h: allocate blocks, leave the file's size
-_RESERVE_STEP_BYTES = 1 << 20  # bytes: blocks are reserved in steps this long (ext4, given
-#   a few kB per call, scattered a 320 kB log over 27 extents); a killed writer leaves at
-#   most this and the summary's room allocated past its file's end
 
 
 def free_log_path(path: str | Path) -> Path:
@@ -88,108 +82,6 @@ def free_log_path(path: str | Path) -> Path:
         if not candidate.exists():
             return candidate
         k += 1
-
-
-@functools.cache
-def _fallocate():
-    """libc's fallocate(2) (Linux only; None elsewhere): os has posix_fallocate, which
-    cannot keep the file's size."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        call = getattr(libc, "fallocate64", None) or libc.fallocate
-    except (OSError, AttributeError):
-        return None
-    call.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
-    call.restype = ctypes.c_int
-    return call
-
-
-class _LogFile:
-    """The log's file as the mcap Writer's output stream. What the Writer writes is held
-    until it flushes (a chunk with its message indexes, the header, the summary) and then
-    written at once, so the file always ends at a complete unit: `committed` bytes.
-
-    Before each write, `fallocate(FALLOC_FL_KEEP_SIZE)` allocates the blocks for it and for
-    `reserve()` bytes past it: the room the summary needs if the next write fails. KEEP_SIZE
-    leaves the file's size that of its data (a reader of the live file sees no padding); the
-    room is in this file, so nothing else on the disk can take it, and truncating the file
-    at its end releases what the summary did not use. Where fallocate is not supported
-    (`reserving` False) the summary gets whatever room the failed write leaves.
-    """
-
-    def __init__(self, path: Path, overwrite: bool, reserve):
-        self.raw = io.FileIO(path, "w+" if overwrite else "x+")
-        self.fd = self.raw.fileno()
-        self.committed = 0      # bytes: on disk, whole units
-        self.reserved_to = 0    # bytes: blocks allocated up to here
-        self.reserving = _fallocate() is not None
-        self._reserve = reserve  # () -> bytes to keep allocated past the data
-        self._pending: list[bytes] = []
-        self._pending_bytes = 0
-
-    @property
-    def closed(self) -> bool:
-        return self.raw.closed
-
-    def write(self, data) -> int:
-        self._pending.append(bytes(data))
-        self._pending_bytes += len(data)
-        return len(data)
-
-    def tell(self) -> int:
-        return self.committed + self._pending_bytes
-
-    def flush(self) -> None:
-        self.commit()
-
-    def commit(self, keep_reserve: bool = True) -> None:
-        """Write what the Writer has written since the last commit, with the room for the
-        summary past it allocated first (`keep_reserve`; the summary itself needs none).
-        Raises OSError (ENOSPC when that room cannot be allocated: nothing is written)."""
-        if not self._pending:
-            return
-        views, size = [memoryview(b) for b in self._pending], self._pending_bytes
-        self._pending.clear()
-        self._pending_bytes = 0
-        self._allocate(self.committed + size + (self._reserve() if keep_reserve else 0))
-        at = self.committed
-        while views:  # pwritev: no joined copy (it cost 20 % of a 1 MB message's write)
-            n = os.pwritev(self.fd, views[:_IOV_MAX], at)
-            at += n
-            while views and n >= len(views[0]):
-                n -= len(views.pop(0))
-            if n:
-                views[0] = views[0][n:]
-        self.committed = at
-
-    def _allocate(self, end: int) -> None:
-        """Blocks up to `end` at least: up to the next multiple of _RESERVE_STEP_BYTES, or
-        exactly to `end` when there is no room for that."""
-        if not self.reserving or end <= self.reserved_to:
-            return
-        for to in (-(-end // _RESERVE_STEP_BYTES) * _RESERVE_STEP_BYTES, end):
-            if _fallocate()(self.fd, _FALLOC_FL_KEEP_SIZE, self.reserved_to,
-                            to - self.reserved_to) == 0:
-                self.reserved_to = to
-                return
-            code = ctypes.get_errno()
-            if code in (errno.EOPNOTSUPP, errno.ENOSYS):
-                self.reserving = False
-                return
-        raise OSError(code, f"{os.strerror(code)} (reserving {end - self.committed} bytes "
-                      f"past byte {self.committed}: the next chunk and room for the summary)")
-
-    def release(self) -> None:
-        """Cut the file to its committed bytes: frees what is reserved past them."""
-        self._pending.clear()
-        self._pending_bytes = 0
-        os.ftruncate(self.fd, self.committed)
-        self.reserved_to = self.committed
-
-    def close(self) -> None:
-        self.raw.close()
 
 
 class LogWriter:
@@ -230,7 +122,7 @@ class LogWriter:
         self.ending = ""  # after a failure: how the file ends
         self._failure_errno: int | None = None
         self._complete = False  # closed with its summary, every message in it
-        self._file = _LogFile(self.path, overwrite, self._summary_bound)
+        self._file = ReservedFile(self.path, overwrite, self._summary_bound)
         try:
             self._writer = Writer(self._file, chunk_size=_NEVER, compression=compression)
             self._writer.start(profile=PROFILE, library="minority")
@@ -343,7 +235,7 @@ class LogWriter:
             raise
 
     def _flush_locked(self) -> None:
-        self._writer.flush()  # closes the open chunk; _LogFile writes it
+        self._writer.flush()  # closes the open chunk; ReservedFile writes it
         self._chunks += (self._open_written + self._open_rejected) > 0
         self._open_written = self._open_rejected = self._open_bytes = 0
         self._last_flush = time.monotonic()

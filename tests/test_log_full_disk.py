@@ -11,7 +11,7 @@ import pytest
 from conftest import make_chunk
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType
-from minority.protocol import keys, log
+from minority.protocol import keys, logfile
 from minority.protocol.log import LogWriter, read_log
 from minority.protocol.repair import LogState, scan
 
@@ -175,7 +175,7 @@ def test_a_log_of_many_chunks_and_channels_still_gets_its_summary(disk):
 @pytest.fixture
 def no_fallocate(monkeypatch):
     """A filesystem without fallocate: nothing is reserved past the file."""
-    monkeypatch.setattr(log, "_fallocate", lambda: None, raising=False)
+    monkeypatch.setattr(logfile, "_fallocate", lambda: None, raising=False)
 
 
 def test_without_fallocate_a_cut_chunk_leaves_its_room_to_the_summary(disk, no_fallocate):

@@ -30,6 +30,7 @@ MAX_GRID_CELLS = 50_000_000  # cells of the domain: 3.2 GB of grid at GRID_BYTES
 MAX_PARTICLES = 20_000_000  # seeded particles: 6.2 GB of state at PARTICLE_BYTES (and spares)
 GRID_BYTES_PER_CELL = 64  # float64 x sim.kernels.GRID_FIELDS (8) per node; tests check it
 PARTICLE_BYTES = 312  # float64 x 39 values of sim.state.ParticleState; tests check it
+MAX_SCENE_FILE_BYTES = 1 << 20  # a scene is a page of TOML (the shipped ones: about 1 kB)
 
 
 class SceneError(ValueError):
@@ -452,13 +453,25 @@ def scene_path(name_or_path: str | Path) -> Path:
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene TOML file."""
+    """Read and validate a scene TOML file; every SceneError names the file."""
     path = Path(path)
     try:
-        text = path.read_text()
+        with open(path, "rb") as f:
+            data = f.read(MAX_SCENE_FILE_BYTES + 1)
     except OSError as exc:
-        raise SceneError(f"cannot read scene file {path}: {exc}") from exc
-    return loads_scene(text, name=path.stem)
+        raise SceneError(f"cannot read scene file {path}: {exc.strerror or exc}") from exc
+    if len(data) > MAX_SCENE_FILE_BYTES:
+        raise SceneError(f"{path}: larger than {MAX_SCENE_FILE_BYTES} bytes: not a scene TOML "
+                         "file")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                         f"{exc.start}): not a scene TOML file") from None
+    try:
+        return loads_scene(text, name=path.stem)
+    except SceneError as exc:
+        raise SceneError(f"{path}: {exc}") from None
 
 
 def loads_scene(text: str, *, name: str = "scene") -> Scene:

@@ -208,6 +208,8 @@ class RankPublisher(Sender):
         self.run: str | None = None
         self.stats = PublishStats()
         self.no_server_reason = ""
+        self.connect_attempts = 0  # sessions tried by `connect` (open_session's attempts)
+        self.connect_s = 0.0  # wall time `connect` took, s
         self._outbox = Outbox(options.outbox_chunks, options.outbox_bytes, options.outbox_stats)
         self._pool = BufferPool(keep=options.outbox_chunks + 2)  # snapshots' arrays, reused
         self._loans = Loans()  # messages that read lent arrays (publish(lend=True))
@@ -242,10 +244,15 @@ class RankPublisher(Sender):
     # --- start ------------------------------------------------------------------------
     def connect(self, wait_s: float = 0.0) -> bool:
         """Open the rank's client session (keep trying for wait_s seconds); False, with the
-        reason in no_server_reason, when no server is reachable."""
+        reason in no_server_reason (with the attempts made and the time they took: also in
+        connect_attempts and connect_s), when no server is reachable."""
         opts = copy.copy(self.options.network)
         opts.connect_timeout_s = wait_s
-        def configure(cfg: zenoh.Config) -> None:
+        self.connect_attempts = 0
+        t0 = time.monotonic()
+
+        def configure(cfg: zenoh.Config) -> None:  # called once per attempt
+            self.connect_attempts += 1
             if opts.config is None:  # an explicit choice; a --config file keeps its own
                 cfg.insert_json5(BLOCK_TIMEOUT_KEY, str(int(BLOCK_TIMEOUT_S * 1e6)))
             self._stall_s = STALL_FRACTION * json.loads(cfg.get_json(BLOCK_TIMEOUT_KEY)) * 1e-6
@@ -253,10 +260,16 @@ class RankPublisher(Sender):
         try:
             self.session = open_session(opts, Role.CLIENT, configure)
         except (zenoh.ZError, OSError) as exc:  # OSError: unusable credentials (protocol.auth)
+            self.connect_s = time.monotonic() - t0
             where = ", ".join(opts.connect) or "the default endpoint"
             why = str(exc).split("  at ")[0].strip()  # drop zenoh's source location
-            self.no_server_reason = f"no zenoh server reachable at {where} ({why[:160]})"
+            tries = self.connect_attempts  # 0: refused before any (no credentials)
+            self.no_server_reason = (
+                f"no zenoh server reachable at {where} ({why[:400]}; "
+                + (f"{tries} connection attempt{'s' if tries != 1 else ''}" if tries else
+                   "no connection attempted") + f" in {self.connect_s:.1f} s)")
             return False
+        self.connect_s = time.monotonic() - t0
         return True
 
     def fetch_spec(self, run: str, wait_s: float = 0.0) -> Spec | None:
@@ -564,7 +577,9 @@ class RankPublisher(Sender):
                        {"error": "ValueError"})
             detail = {**(detail or {}), "error": str(self.close_error)[:1000]}
         if self._thread is not None:
-            self.event(EventKind.RANK_DONE, f"rank {self.rank} done",
+            stopped = (detail or {}).get("stopped")
+            self.event(EventKind.RANK_DONE, f"rank {self.rank} "
+                       + (f"stopped by {stopped}" if stopped else "done"),
                        {**(detail or {}), **self.summary()})
             if not self._outbox.wait_empty(self.options.drain_timeout_s if delivered else 0.0):
                 print(f"rank {self.rank}: the rank_done event could not be sent (the server "

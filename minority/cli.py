@@ -277,7 +277,9 @@ def _sim_parser(sub) -> None:
                 description="Run the 3D MLS-MPM simulation (Drucker-Prager sand) of a scene "
                             "and write its frames to HDF5 (positions m, velocities m/s, "
                             "displacements m, float32). Exit status 2 on a bad scene, spec or "
-                            "argument, 1 when the run fails.")
+                            "argument, 1 when the run fails, 130 or 143 when SIGINT or SIGTERM "
+                            "stopped it (at a step boundary: frames so far, records and "
+                            "rank_done events complete).")
     p.add_argument("scene", help="scene TOML file (keys and units in sim/README.md), or the "
                                  "name of a shipped scene: tiny, cylinder_small, column_13k, "
                                  "column_100k, column_1m")
@@ -335,24 +337,62 @@ def _mpi():
     return MPI
 
 
-def _cmd_sim(args: argparse.Namespace) -> int:
+def _sim_bad_input(args: argparse.Namespace) -> str | None:
+    """What is wrong with `minority sim`'s arguments, checked before any rank starts (the
+    scene and the spec are read in full); None when nothing is."""
+    import math
+
+    from minority.protocol.check import NAME_RE
     from minority.protocol.errors import SpecError
     from minority.protocol.spec import Spec
-    from minority.sim.driver import SimulationError
-    from minority.sim.launcher import relaunch, under_launcher
-    from minority.sim.ranks import RankRunConfig, run_ranks
-    from minority.sim.scene import SceneError, scene_path
+    from minority.sim.scene import SceneError, load_scene, scene_path
 
-    if args.ranks is not None and args.ranks < 1:
-        return fail("sim", "--ranks must be at least 1", BAD_INPUT)
+    numbers = (("--ranks", args.ranks, 1), ("--threads", args.threads, 1),
+               ("--steps", args.steps, 0), ("--rebalance-every", args.rebalance_every, 0))
+    for flag, value, least in numbers:
+        if value is not None and value < least:
+            return f"{flag} must be at least {least}, got {value}"
+    if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0.0):
+        return f"--dt must be a finite time step > 0 s, got {args.dt}"
+    if not (math.isfinite(args.wait) and args.wait >= 0.0):
+        return f"--wait must be a finite number of seconds >= 0, got {args.wait}"
+    if args.run is not None and not NAME_RE.match(args.run):
+        return (f"--run {args.run!r}: a run id is 1-64 characters of A-Za-z0-9_.- starting "
+                "with a letter, digit or underscore")
+    if args.record is not None and not args.no_publish and args.record.exists():
+        return f"--record {args.record}: the file exists (a record is never overwritten)"
+    try:
+        load_scene(scene_path(args.scene))
+        if args.spec is not None:
+            Spec.load(args.spec)
+    except (SceneError, SpecError) as exc:
+        return str(exc)
+    except OSError as exc:  # the spec file: missing, a directory, unreadable
+        return f"cannot read spec file {args.spec}: {exc.strerror or exc}"
+    return None
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from minority.sim.launcher import StopSignals, relaunch, stopped_status, under_launcher
+
+    bad = _sim_bad_input(args)  # before any rank starts (and again on each rank)
+    if bad is not None:
+        return fail("sim", bad, BAD_INPUT)
     if not under_launcher() and (args.ranks or 1) > 1:
         return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
-    try:
-        scene = scene_path(args.scene)
-        if args.spec is not None:
-            Spec.load(args.spec)  # a bad spec is bad input, said before any rank starts
-    except (SceneError, SpecError, OSError) as exc:
-        return fail("sim", exc, BAD_INPUT)
+    with StopSignals() as stop:  # SIGINT, SIGTERM: stop at the next step, close, 130/143
+        status = _run_sim(args, stop)
+    return stopped_status(stop.signum) if stop.signum and status == 0 else status
+
+
+def _run_sim(args: argparse.Namespace, stop) -> int:
+    """`minority sim` on this process's rank, its arguments checked; `stop` is polled at
+    every step (sim.launcher.StopSignals)."""
+    from minority.sim.driver import SimulationError
+    from minority.sim.ranks import RankRunConfig, run_ranks, warning_block
+    from minority.sim.scene import SceneError, scene_path
+
+    scene = scene_path(args.scene)
     MPI = _mpi()
     if MPI is None:
         return FAILED
@@ -378,7 +418,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                                dt=args.dt, threads=args.threads,
                                rebalance_every=args.rebalance_every, progress=not args.quiet,
                                publish=publish, run=args.run, wait_s=args.wait,
-                               max_steps=args.steps)
+                               max_steps=args.steps, stop=stop)
         summary = run_ranks(config)
     except SceneError as exc:
         return fail("sim", exc, BAD_INPUT)
@@ -390,10 +430,15 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         p = summary.publish
         sent = (f"; run {summary.run}: {p['sent']} of {p['scheduled']} chunks sent, "
                 f"{p['dropped']} dropped" if p else "")
-        print(f"{summary.particles} particles, {summary.ranks} rank(s), {summary.steps} steps, "
-              f"{summary.frames} frames, {summary.sim_time_s:.3f} s simulated in "
+        stopped = (f" (stopped by {signal.Signals(summary.stopped).name})"
+                   if summary.stopped else "")
+        print(f"{summary.particles} particles, {summary.ranks} rank(s), {summary.steps} steps"
+              f"{stopped}, {summary.frames} frames, {summary.sim_time_s:.3f} s simulated in "
               f"{summary.wall_s:.1f} s wall ({summary.particle_steps_per_s:.3g} "
               f"particle-steps/s{slabs}) -> {summary.out_path}{sent}", file=sys.stderr)
+        if summary.not_published:
+            print(warning_block([f"this run was NOT published/observed: "
+                                 f"{summary.not_published}"]), file=sys.stderr)
     return 0
 
 

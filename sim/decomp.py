@@ -31,6 +31,7 @@ every one is on its owner, hopping one rank per pass.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -153,6 +154,11 @@ class SlabSimulator(Simulator):
     rebalance_every: int = DEFAULT_REBALANCE_EVERY  # steps; 0: never
     rebalances: int = field(init=False, default=0)  # slab boundary changes so far
     migrated: int = field(init=False, default=0)  # particles received from other ranks
+    # polled at every step, its largest value over ranks kept in stop_signum (the stats'
+    # exchange carries it: no collective of its own): a signal number asking the ranks to
+    # stop, else 0 (sim.launcher.StopSignals)
+    stop_source: Callable[[], int] | None = None
+    stop_signum: int = field(init=False, default=0)  # after the last step, on every rank
 
     # --- set-up ---------------------------------------------------------------------
     def _init_state(self) -> None:
@@ -188,7 +194,7 @@ class SlabSimulator(Simulator):
         self._dest = np.empty(0, np.int64)
         self._xb = np.empty(0, np.int64)
         self._disordered = False
-        self._gathered = np.zeros((self.ranks, 2))
+        self._gathered = np.zeros((self.ranks, 3))
         nyz = -(-self._nodes[1] // BLOCK) * -(-self._nodes[2] // BLOCK)
         self._ghost_slots = 2 * nyz if self.ranks > 1 else 0
         self._set_slab(starts)
@@ -303,10 +309,12 @@ class SlabSimulator(Simulator):
     def _reduce_stats(self) -> None:
         if self.ranks == 1:
             return
-        mine = np.array([self._stats[0], self._stats[1]])
+        stop = self.stop_source() if self.stop_source is not None else 0
+        mine = np.array([self._stats[0], self._stats[1], float(stop)])
         self.comm.Allgather(mine, self._gathered)
         self._stats[0] = self._gathered[:, 0].max()  # max |v|^2: the next time step
         self._stats[1] = self._gathered[:, 1].sum()  # non-finite particles on any rank
+        self.stop_signum = int(self._gathered[:, 2].max())  # a stop asked on any rank
 
     # --- migration and rebalancing ----------------------------------------------------
     def _owners(self) -> int:

@@ -9,7 +9,10 @@ when it says so, `publish` with the fields it wants built from the ParticleState
 (sim.publish: a chunk if the spec schedules the step, a Stats message on the stats
 cadence); per output frame:
 rank 0 gathers and writes. At the end each rank drains its outbox and publishes `rank_done`
-with its counts; rank 0 gathers the totals. An error on one rank that the others
+with its counts; rank 0 gathers the totals. A stop asked for (`RankRunConfig.stop`: SIGINT or
+SIGTERM on any rank) ends the stepping at the next step boundary on every rank alike (the
+ranks agree on it at every step), and the end is the same: frames so far written,
+`rank_done` (with `stopped`), records and sessions closed. An error on one rank that the others
 cannot see (e.g. a failed write) is published as an `error` event, then MPI_Abort ends the
 run; a non-finite value or an unstable time step is seen by every rank at the same step.
 """
@@ -19,8 +22,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
@@ -45,6 +50,9 @@ class RankRunConfig:
     run: str | None = None  # run id of the keys minority/{run}/...; None: the scene name
     wait_s: float = 0.0  # keep trying to reach the server this long at start, s
     max_steps: int | None = None  # stop after this many steps (benchmarks, tests)
+    # polled at every step boundary: a signal number when a stop is asked for, else 0
+    # (sim.launcher.StopSignals); None: never
+    stop: Callable[[], int] | None = None
 
 
 @dataclass
@@ -68,9 +76,11 @@ class RankRunSummary:
     run: str | None
     spec_version: int | None
     publish: dict = field(default_factory=dict)  # PublishStats summed over ranks
+    not_published: str = ""  # why some ranks reached no server (not_published); "": all did
     rank_particles: list[int] = field(default_factory=list)  # per rank, at the end
     rank_compute_cpu_s: list[float] = field(default_factory=list)  # per rank: CPU s, MPM phases
     rank_phases_s: list[dict] = field(default_factory=list)  # per rank: s per phase (PhaseTimes)
+    stopped: int = 0  # the signal that stopped the stepping early (every rank's view); 0: none
 
 
 def _default_threads(comm) -> int:
@@ -106,6 +116,7 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
         _default_threads(comm) if ranks > 1 else None)
     sim = SlabSimulator(scene, fixed_dt=config.dt, threads=threads, comm=comm,
                         rebalance_every=config.rebalance_every)
+    sim.stop_source = config.stop
     n_total = sim.n_total
     frames = frame_times(scene.duration_s, scene.output_interval_s)
     dt0 = config.dt if config.dt is not None else sim.stable_dt()
@@ -132,7 +143,7 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
                                       dt_mode="fixed" if config.dt is not None else "cfl",
                                       attrs={"ranks": ranks,
                                              "rebalance_every": config.rebalance_every})
-        written = _step_loop(sim, config, frames, writer, publisher, say)
+        written, stopped = _step_loop(sim, config, frames, writer, publisher, say, comm)
     except (NonFiniteError, TimeStepError) as exc:  # every rank saw it at the same step
         _fail(publisher, exc, rank)
         raise
@@ -147,7 +158,11 @@ def run_ranks(config: RankRunConfig, comm=None, stream: TextIO | None = None) ->
         if writer is not None:
             writer.close()
     loop_wall = time.perf_counter() - loop0
-    return _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, say)
+    if stopped:
+        say(f"sim: stopped by {signal.Signals(stopped).name} at step {sim.step_count} "
+            f"(t = {sim.time_s:.4f} s), {written} of {len(frames)} frames written")
+    return _finish(sim, config, comm, publisher, run, spec, (written, stopped), wall0,
+                   loop_wall, say)
 
 
 def _start_publishing(config, scene, sim, comm, log):
@@ -179,11 +194,17 @@ def _start_publishing(config, scene, sim, comm, log):
     spec = viz.spec
     reasons = comm.gather(viz.no_server_reason, root=0)
     if rank == 0:
-        missing = [r for r, why in enumerate(reasons) if why]
-        if missing:
-            print(f"minority sim: {reasons[missing[0]]}: running without publishing "
-                  f"(rank{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))})",
-                  file=log, flush=True)
+        unpublished = not_published(reasons)
+        if unpublished:
+            print(warning_block([
+                unpublished,
+                "this run is NOT published: no render server observes it, nothing is "
+                "rendered" + (f" (it is only recorded, to {opts.record} and the ranks' "
+                              f"records beside it)" if opts.record else ""),
+                f"--wait {config.wait_s:g}: " + (
+                    "one try at start; start the server first, or give --wait S to keep "
+                    "trying S seconds" if config.wait_s <= 0 else
+                    "no server answered in that time")]), file=log, flush=True)
         if spec is None:
             print(f"minority sim: no spec for run {run!r} (no server serves one, no --spec; "
                   f"--run names the server's run): nothing is scheduled, nothing is published",
@@ -194,6 +215,22 @@ def _start_publishing(config, scene, sim, comm, log):
                   f"{len(spec.views)} view(s), fields {', '.join(spec.fields)}, regions "
                   f"{regions}", file=log, flush=True)
     return viz, run, spec
+
+
+def not_published(reasons: list[str]) -> str:
+    """One line from the ranks' no_server_reason (index = rank; "" where the rank reached a
+    server): the first reason and the ranks it concerns; "" when every rank reached one."""
+    missing = [r for r, why in enumerate(reasons) if why]
+    if not missing:
+        return ""
+    return (f"{reasons[missing[0]]} (rank{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(map(str, missing))} of {len(reasons)})")
+
+
+def warning_block(lines: list[str], who: str = "minority sim") -> str:
+    """Lines framed so that they stand out in a terminal's scroll of progress lines."""
+    rule = f"{who}: WARNING " + "-" * 60
+    return "\n".join([rule, *(f"{who}: WARNING: {line}" for line in lines), rule])
 
 
 def _publish_step(viz, sim, spacing_m: float, bounds_m) -> None:
@@ -209,10 +246,19 @@ def _publish_step(viz, sim, spacing_m: float, bounds_m) -> None:
                     ids=ps.pid, spacing_m=spacing_m, bounds_m=bounds_m, copy=False)
 
 
-def _step_loop(sim, config, frames, writer, publisher, say) -> int:
+def _stop_asked(sim, config, comm) -> int:
+    """The signal number of a stop asked for on any rank (0: none). With more than one
+    rank, what the last step's exchange agreed on (SlabSimulator.stop_signum): every rank
+    stops after the same step, so none waits in an exchange for one that left."""
+    if comm.Get_size() > 1:
+        return sim.stop_signum
+    return config.stop() if config.stop is not None else 0
+
+
+def _step_loop(sim, config, frames, writer, publisher, say, comm) -> tuple[int, int]:
     """Step through the output frames; hand every step (0 included, in order) to the
-    publisher, which needs each step's time as the next one's prev_time_s. Returns frames
-    written."""
+    publisher, which needs each step's time as the next one's prev_time_s. Returns (frames
+    written, the signal that stopped it early or 0)."""
     n_total = sim.n_total
     scene = sim.scene
     spacing, bounds = scene.particle_spacing_m, ((0.0, 0.0, 0.0), tuple(map(float, scene.size_m)))
@@ -224,7 +270,10 @@ def _step_loop(sim, config, frames, writer, publisher, say) -> int:
     for k, t_frame in enumerate(frames):
         while not sim.reached(t_frame):
             if config.max_steps is not None and sim.step_count >= config.max_steps:
-                return written
+                return written, 0
+            stopped = _stop_asked(sim, config, comm)
+            if stopped:
+                return written, stopped
             sim.advance_to(t_frame, max_steps=1)
             if publisher is not None:
                 _publish_step(publisher, sim, spacing, bounds)
@@ -241,7 +290,7 @@ def _step_loop(sim, config, frames, writer, publisher, say) -> int:
         written += 1
         say(f"frame {k + 1}/{len(frames)}: " + _progress(sim, n_total, time.perf_counter() - start))
         last_print = time.perf_counter()
-    return written
+    return written, 0
 
 
 def _progress(sim, n_total: int, wall_s: float) -> str:
@@ -255,10 +304,13 @@ def _fail(publisher, exc: BaseException, rank: int) -> None:
         publisher.fail(exc)  # an error event, then close
 
 
-def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, say):
+def _finish(sim, config, comm, publisher, run, spec, ended, wall0, loop_wall, say):
+    """The end on every rank (collective): rank_done with the counts, then the totals.
+    ended: (frames written, the signal that stopped the stepping or 0)."""
     import numba
     from mpi4py import MPI
 
+    written, stopped = ended
     ranks = comm.Get_size()
     step_wall = comm.allreduce(sim.times.total, op=MPI.MAX)
     detail = {"steps": sim.step_count, "particles": sim.particles.n,
@@ -266,6 +318,8 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
               "phases_s": {k: round(getattr(sim.times, k), 6)
                            for k in ("bin", "p2g", "grid", "g2p", "comm", "compute_cpu")},
               "migrated": sim.migrated, "clamped_particle_steps": sim.clamp_count}
+    if stopped:
+        detail["stopped"] = signal.Signals(stopped).name
     if publisher is not None:
         publisher.close(detail)
     pub_total: dict = {}
@@ -281,6 +335,7 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         pub_total["missing_fields"] = sorted({f for p in parts for f in p["missing_fields"]})
     n_total = sim.n_total
     phases = comm.allgather(detail["phases_s"])
+    reasons = comm.allgather(publisher.no_server_reason if publisher is not None else "")
     summary = RankRunSummary(
         out_path=config.out, particles=n_total, ranks=ranks, steps=sim.step_count,
         frames=written, sim_time_s=sim.time_s, wall_s=time.perf_counter() - wall0,
@@ -290,8 +345,10 @@ def _finish(sim, config, comm, publisher, run, spec, written, wall0, loop_wall, 
         threads=numba.get_num_threads(), rebalances=sim.rebalances,
         migrated=sim.total_count(sim.migrated), run=run,
         spec_version=spec.version if spec is not None else None, publish=pub_total,
+        not_published=not_published(reasons),
         rank_particles=comm.allgather(sim.particles.n),
-        rank_compute_cpu_s=[p["compute_cpu"] for p in phases], rank_phases_s=phases)
+        rank_compute_cpu_s=[p["compute_cpu"] for p in phases], rank_phases_s=phases,
+        stopped=stopped)
     if pub_total:
         say(f"published: {pub_total['sent']} of {pub_total['scheduled']} scheduled chunks sent, "
             f"{pub_total['dropped']} dropped, {pub_total['bytes_sent'] / 1e6:.3g} MB, "

@@ -380,7 +380,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         return fail("sim", bad, BAD_INPUT)
     if not under_launcher() and (args.ranks or 1) > 1:
         return relaunch(args.ranks, args.argv)  # the same command under mpiexec -n RANKS
-    with StopSignals() as stop:  # SIGINT, SIGTERM: stop at the next step, close, 130/143
+    # SIGINT, SIGTERM: stop at the next step, close, 130/143 (a second one: see StopSignals)
+    with StopSignals(repeat_ends=not under_launcher()) as stop:
         status = _run_sim(args, stop)
     return stopped_status(stop.signum) if stop.signum and status == 0 else status
 

@@ -38,13 +38,18 @@ def stopped_status(signum: int) -> int:
 
 class StopSignals:
     """While entered (`with StopSignals() as stop:`), the first SIGINT or SIGTERM asks for a
-    clean stop (`stop()` and `signum` say which; the caller polls it) and a second one ends
-    the process at once by that signal, as if no handler were set; on exit the handlers
+    clean stop (`stop()` and `signum` say which; the caller polls it); on exit the handlers
     before it are back. A handler only stores a number: it runs in the main thread between
-    two bytecodes, wherever that thread is, so it must take no lock."""
+    two bytecodes, wherever that thread is, so it must take no lock.
 
-    def __init__(self) -> None:
+    repeat_ends: a second signal ends the process at once by that signal, as if no handler
+    were set (a process alone: its user presses Ctrl-C again). Under an MPI launcher leave
+    it False: a rank gets a terminal's Ctrl-C twice, from the terminal and from mpiexec,
+    which forwards it, and mpiexec itself aborts every rank at a second Ctrl-C."""
+
+    def __init__(self, repeat_ends: bool = True) -> None:
         self.signum = 0  # the first stop signal received; 0: none
+        self.repeat_ends = repeat_ends
         self._before: dict[int, object] = {}
 
     def __enter__(self) -> StopSignals:
@@ -61,11 +66,11 @@ class StopSignals:
         return self.signum
 
     def _handle(self, signum: int, _frame) -> None:
-        if self.signum:
+        if not self.signum:
+            self.signum = signum
+        elif self.repeat_ends:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
-            return
-        self.signum = signum
 
 
 def under_launcher() -> bool:

@@ -27,6 +27,7 @@ from conftest import free_port
 from mcap.reader import make_reader
 from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, read_log
 from minority.protocol.messages import Event, EventKind, Stats
+from minority.sim.launcher import StopSignals, stopped_status
 from minority.sim.scene import SCENES_DIR
 
 from minority.cli import main
@@ -162,6 +163,17 @@ class Sim:
         return status, "".join(self.lines)
 
 
+def test_stop_signals_keep_the_first_signal_and_restore_the_handlers():
+    before = signal.getsignal(signal.SIGTERM)
+    with StopSignals(repeat_ends=False) as stop:  # as on a rank under mpiexec
+        assert stop() == 0
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)  # a repeat: ignored, not the end of pytest
+        assert stop() == stop.signum == signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert stopped_status(signal.SIGINT) == 130 and stopped_status(signal.SIGTERM) == 143
+
+
 def long_scene(tmp_path: Path) -> Path:
     path = tmp_path / "long.toml"
     text = (SCENES_DIR / "tiny.toml").read_text()
@@ -208,22 +220,24 @@ def test_a_signalled_sim_stops_at_a_step_and_closes_its_record(tmp_path, sig):
         assert f["positions"].shape[0] >= 2
 
 
-def test_a_signalled_launcher_stops_every_rank_and_closes_their_records(tmp_path):
-    """`--ranks 2`: SIGTERM to the launcher reaches both ranks (through mpiexec), which stop
-    at the same step; both records are complete."""
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signalled_launcher_stops_every_rank_and_closes_their_records(tmp_path, sig):
+    """`--ranks 2`: a signal to the launcher (a terminal's Ctrl-C reaches only it: mpiexec
+    runs in its own process group) reaches both ranks through mpiexec; they stop after the
+    same step; both records are complete."""
     record = tmp_path / "sim.mcap"
     sim = Sim([str(long_scene(tmp_path)), "-o", str(tmp_path / "sim.h5"), "--ranks", "2",
                "--threads", "1", "--run", RUN, "--record", str(record),
                "--connect", f"tcp/127.0.0.1:{free_port()}", "--no-auth"])
     sim.wait_for(r"^frame 2/")
-    sim.proc.send_signal(signal.SIGTERM)
+    sim.proc.send_signal(sig)
     status, err = sim.end()
-    assert status == 143, err
-    assert "stopped by SIGTERM" in err and "Traceback" not in err
+    assert status == 128 + sig, err
+    assert f"stopped by {sig.name}" in err and "Traceback" not in err
     steps = set()
     for rank, path in ((0, record), (1, tmp_path / "sim.rank1.mcap")):
         messages = complete_record(path)
-        assert_stopped_cleanly(messages, rank, "SIGTERM")
+        assert_stopped_cleanly(messages, rank, sig.name)
         steps |= {m.detail["steps"] for m in messages if isinstance(m, Event)
                   and m.kind == EventKind.RANK_DONE}
     assert len(steps) == 1  # the same step on both ranks

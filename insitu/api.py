@@ -49,7 +49,7 @@ def connect(run: str, rank: int = 0, ranks: int = 1,
     outbox bounds, the network's config and credentials): its network.connect, record and
     spec_file are replaced by the arguments above; agree: ranks that must follow one spec
     (MPI) pass a collective hook; log: where notices go (stderr); report: print the outcome
-    (no server, no spec) to log.
+    (no server, no spec) to log, and at `close` a warning again when no server was reached.
 
     No server is not an error: the run goes on and publishes nothing (or only records).
     A bad spec file raises (SpecError) before anything is published."""
@@ -87,21 +87,23 @@ def connect(run: str, rank: int = 0, ranks: int = 1,
         pub.close()
         raise
     if report and pub.no_server_reason:
-        print(f"minority: rank {rank}: {pub.no_server_reason}: running without publishing"
+        print(f"minority: rank {rank}: WARNING: {pub.no_server_reason}: this run is NOT "
+              f"observed, running without publishing"
               + (" (recording only)" if record is not None else ""), file=log, flush=True)
     if report and found is None:
         print(f"minority: rank {rank}: no spec for run {run!r} (no server serves one, no spec "
               f"file): nothing is scheduled, only Stats are published", file=log, flush=True)
     pub.start(run, found)
-    return InSitu(pub, id_offset)
+    return InSitu(pub, id_offset, report)
 
 
 class InSitu:
     """A connected rank (from `connect`). Not thread-safe: call it from the simulation's
     thread. `stats` holds the counts so far; `spec` the spec followed now (None: none)."""
 
-    def __init__(self, publisher: RankPublisher, id_offset: int = 0):
+    def __init__(self, publisher: RankPublisher, id_offset: int = 0, report: bool = False):
         self._pub = publisher
+        self._report = report  # at close: warn again when no server was reached
         self._id_offset = id_offset
         self._ids: np.ndarray | None = None  # arange(n) + id_offset, kept for the next call
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None  # seen so far, m
@@ -257,6 +259,9 @@ class InSitu:
         if not self._closed:
             self._closed = True
             self._pub.close(detail)
+            if self._report and self._pub.no_server_reason:
+                print(f"minority: rank {self.rank}: WARNING: this run was NOT published/"
+                      f"observed: {self._pub.no_server_reason}", file=self._pub.log, flush=True)
             if self._pub.close_error is not None:  # published as an error event too
                 raise self._pub.close_error
         return self._pub.stats

@@ -10,6 +10,7 @@ import dataclasses
 import io
 import json
 import math
+import re
 import threading
 import time
 from pathlib import Path
@@ -619,6 +620,25 @@ def test_stats_are_published_before_any_spec_is_known(tmp_path):
     for m in got:
         assert not m.windows_open and m.hist_in_regions == [0] * SPEED_BINS
         assert sum(m.hist_elsewhere) == m.count == summary.particles
+
+
+def test_a_rank_without_a_server_warns_at_connect_and_again_at_close(tmp_path):
+    """minority.insitu's own report (any simulation's): the reason with the attempts made
+    over wait_s, and the run said unobserved once more when it ends."""
+    from minority.insitu import connect
+
+    log = io.StringIO()
+    port = free_port()
+    viz = connect(RUN, connect=(f"tcp/127.0.0.1:{port}",), wait_s=0.6, log=log,
+                  options=PublishOptions(network=NetworkOptions(auth=False)))
+    assert viz.no_server_reason.startswith(f"no zenoh server reachable at tcp/127.0.0.1:{port}")
+    tries = re.search(r"(\d+) connection attempts? in ([\d.]+) s\)$", viz.no_server_reason)
+    assert tries and int(tries.group(1)) >= 1 and float(tries.group(2)) >= 0.5
+    start = log.getvalue()
+    assert f"rank 0: WARNING: {viz.no_server_reason}: this run is NOT observed" in start
+    viz.close()
+    end = log.getvalue()[len(start):]
+    assert f"rank 0: WARNING: this run was NOT published/observed: {viz.no_server_reason}" in end
 
 
 def test_stats_every_s_must_be_a_time():

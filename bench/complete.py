@@ -8,14 +8,20 @@ recorded (no server; frames re-rendered from each record by the server's own cod
 * `full`: every particle at every due step (the spec without regions nor occlusion
   culling; the reference frames).
 
-Prints JSON lines: per view, the pixels of each `context` and `regions` frame that differ
-from the `full` frame of the same step; and per variant, the chunk bytes, rows and
-context rows of the run.
+Prints JSON lines: per variant, the chunk bytes, chunks, rows and context rows (and rows
+evicted) of the run, and its bytes against `regions`:
+{"bench": "complete", "variant", "bytes", "chunks", "rows", "context_rows", "evicted",
+ "bytes_vs_regions"}
+and per view, the pixels of each `context` and `regions` frame that differ from the `full`
+frame of the same step:
+{"bench": "complete", "variant", "view", "frames", "frames_identical", "differing_px_max",
+ "differing_px_mean"}
 
-    python -m bench.complete [--spec SPEC.json] [--tolerance M ...] [--keep DIR]
+    python -m bench.complete [--spec SPEC.json] [--tolerance M ...] [--keep DIR] [--small]
 
 Without --spec the oracle derives the demo's spec first (about 20 s). About 3 minutes, and
-one more per extra tolerance. With --keep, records already in DIR are reused.
+one more per extra tolerance. With --keep, records already in DIR are reused. --small: a
+smoke test (1,800 particles, 0.15 s, 12 frames of 160x120; half a minute).
 """
 
 from __future__ import annotations
@@ -35,13 +41,19 @@ from minority.render_server.rerender import rerender
 from PIL import Image
 
 RUN = "demo"
+KEYS = {"complete": ("variant", "bytes", "chunks", "rows", "context_rows", "evicted",
+                     "bytes_vs_regions"),
+        "complete view": ("variant", "view", "frames", "frames_identical", "differing_px_max",
+                          "differing_px_mean")}
+SMALL = {"duration_s": 0.15, "cell_size_m": 0.032, "frames": 12, "width": 160, "height": 120}
 
 
-def demo_inputs(work: Path, spec: Path | None) -> tuple[Path, Path]:
-    """The demo's scene TOML and the oracle's spec (derived now unless given)."""
+def demo_inputs(work: Path, spec: Path | None, small: bool = False) -> tuple[Path, Path]:
+    """The demo's scene TOML and the oracle's spec (derived now unless given); small: at the
+    SMALL size."""
     from minority.demo import DemoOptions, demo_column, run_oracle
 
-    o = DemoOptions(out=work)
+    o = DemoOptions(out=work, **(SMALL if small else {}))
     scene = work / "scene.toml"
     scene.write_text(demo_column(o))
     if spec is None:
@@ -95,11 +107,13 @@ def main() -> None:
     ap.add_argument("--tolerance", type=float, nargs="+", default=[None], metavar="M",
                     help="context tolerances to measure, m (default: the sim's)")
     ap.add_argument("--keep", type=Path, help="work in this directory and keep it")
+    ap.add_argument("--small", action="store_true",
+                    help="a smoke test: 1,800 particles, 0.15 s, 12 frames of 160x120")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        scene, spec_path = demo_inputs(work, args.spec)
+        scene, spec_path = demo_inputs(work, args.spec, args.small)
         full_spec = without_regions(spec_path, work / "spec_full.json")
         variants = {"regions": (spec_path, ["--no-context"]),
                     "full": (full_spec, ["--no-context"])}

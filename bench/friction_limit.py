@@ -15,7 +15,8 @@ where it first reaches half of that peak (the score's runout start; null when th
 the first settling's, within 0.05 s); max_displacement_m: at the run's end. A case whose
 peak or displacement moves with the time step is not converged there.
 
-    python -m bench.friction_limit [--fine] [--threads N] [--out DIR]
+    python -m bench.friction_limit [--fine] [--threads N] [--out DIR] [--cases CASE ...]
+                                   [--config SWEEP.toml]
 """
 
 from __future__ import annotations
@@ -29,7 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.oracle_loop import CONFIG
+
 SETTLING_S = 0.05  # a peak before this is the first elastic settling, not a failure
+KEYS = {"friction_limit": ("case", "friction_deg", "cell_size_m", "cfl", "flip", "particles",
+                           "peak_s", "peak_speed_m_s", "fast_from_s?", "max_displacement_m",
+                           "wall_s")}
 
 
 def cases(fine: bool) -> list[tuple[str, dict]]:
@@ -75,15 +81,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="numba threads (default 2)")
     ap.add_argument("--out", type=Path, default=Path("data/friction_limit"),
                     help="where the scenes and runs go")
+    ap.add_argument("--cases", nargs="+", metavar="CASE",
+                    help="only these cases (default: all; names as the lines print them)")
+    ap.add_argument("--config", type=Path, default=CONFIG,
+                    help="the sweep config of test_003 (default: gns/configs/"
+                         "column_sweep_cg2.toml)")
     args = ap.parse_args(argv)
     from minority.sim.columns import channel_column_toml
 
     from bench.oracle_loop import scene_plans
     from minority.sweep import column, run_scene
 
-    cfg, (base,) = scene_plans(["test_003"])
+    cfg, (base,) = scene_plans(["test_003"], args.config)
+    chosen = cases(True)
+    unknown = set(args.cases or []) - {name for name, _ in chosen}
+    if unknown:
+        ap.error(f"--cases: unknown {sorted(unknown)} (known: "
+                 f"{', '.join(name for name, _ in chosen)})")
+    chosen = [(n, o) for n, o in chosen if n in args.cases] if args.cases else cases(args.fine)
     args.out.mkdir(parents=True, exist_ok=True)
-    for name, over in cases(args.fine):
+    for name, over in chosen:
         c = replace(column(cfg, base), **over)
         scene = args.out / f"{name}.toml"
         scene.write_text(channel_column_toml(c, name))

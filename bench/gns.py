@@ -2,7 +2,7 @@
 
 Prints one JSON object per (particles, latent, message passing):
 {"bench": "gns", "particles": N, "latent": L, "message_passing": M, "edges": E,
- "s_per_step": .., "graph_s_per_step": ..}
+ "s_per_step": .., "graph_s_per_step": .., "threads": torch's}
 s_per_step: one rollout step (radius graph + model + update), median of REPEAT steps after
 one warm-up; graph_s_per_step: the radius-graph part of it. Particles sit on a jittered
 lattice of spacing 0.016 m with connectivity radius 0.029 m (about 20-26 neighbours each),
@@ -27,6 +27,8 @@ from minority.gns.runtime import tune_allocator
 SPACING_M, RADIUS_M = 0.016, 0.029
 LATTICES = {1_000: (10, 10, 10), 4_000: (16, 16, 16), 15_000: (25, 25, 24)}
 REPEAT = 5
+KEYS = {"gns": ("particles", "latent", "message_passing", "edges", "s_per_step",
+                "graph_s_per_step", "threads")}
 
 
 def lattice(dims, seed: int = 0) -> np.ndarray:

@@ -2,6 +2,8 @@
 
     python -m bench.insitu [--sizes 13k,100k,1m] [--calls N] [--threads T]
 
+(--sizes tiny: the 400-particle test scene, a smoke test of the bench.)
+
 {"bench": "insitu", "particles", "mode", "due_publish_s", "due_publish_cpu_s",
  "reclaim_wait_s", "snapshot_queue_s", "mpm_step_publishing_s", "chunk_bytes",
  "sender_build_s", "sent", "dropped", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
@@ -59,7 +61,11 @@ from minority.sim.publish import sim_fields
 from minority.sim.scene import builtin_scene_path, load_scene
 
 RUN = "bench-insitu"
-SIZES = {"13k": "column_13k", "100k": "column_100k", "1m": "column_1m"}
+SIZES = {"13k": "column_13k", "100k": "column_100k", "1m": "column_1m", "tiny": "tiny"}
+KEYS = {"insitu": ("particles", "mode", "due_publish_s", "due_publish_cpu_s", "reclaim_wait_s",
+                   "snapshot_queue_s", "mpm_step_publishing_s", "chunk_bytes", "sender_build_s",
+                   "sent", "dropped", "full_outbox_publish_s", "idle_due_s", "mpm_step_s",
+                   "copy_floor_s", "due_publish_over_mpm_step", "threads", "scene")}
 CALLS = 20  # timed due + publish calls per size
 WARMUP_CALLS = 3  # shared-memory pool, page mapping, numba (visibility) warm up
 WARMUP_STEPS = 2
@@ -280,8 +286,8 @@ def _free_port() -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="13k,100k,1m",
-                        help="comma-separated, of 13k, 100k, 1m (default: all three; 1m takes "
-                             "minutes)")
+                        help="comma-separated, of 13k, 100k, 1m, tiny (default: the first "
+                             "three; 1m takes minutes)")
     parser.add_argument("--calls", type=int, default=CALLS,
                         help=f"timed due + publish calls per size (default {CALLS})")
     parser.add_argument("--threads", type=int, default=None,

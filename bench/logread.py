@@ -45,6 +45,10 @@ VIEWS = ("side", "top", "oblique")
 FRAME_STEPS = 30  # steps with a frame of every view: 90 frames
 WIDTH, HEIGHT = 1024, 768  # px
 DT_S = 0.02  # s of simulated time per output step
+KEYS = {"logread": ("flush", "topic", "messages", "log_bytes", "chunks", "indexed_s",
+                     "scanned_s", "speedup"),
+        "logread reader": ("flush", "reader", "log_bytes", "chunks", "indexed_s", "scanned_s",
+                           "speedup")}
 TOPICS = {"timing": keys.log_topic(RUN, keys.Topic.TIMING),
           "frame/side": keys.log_topic(RUN, keys.Topic.FRAME, "side"),
           "stats": keys.log_topic(RUN, keys.Topic.STATS),

@@ -17,8 +17,8 @@ members together; gns.ensemble) and widening factor it prints a JSON line:
  "frames": {"single", "ensemble", "single_in_critical", "ensemble_in_critical"},
  "bytes": {"single", "ensemble", "ratio"}, "rollout_s": mean s per member}
 and then one summary line per (perturbation, widen) with the coverage over the scenes:
-{"bench": "oracle_calibration_summary", "perturb", "widen", "events_inside", "events",
- "deposit_inside", "deposits", "bytes_ratio", "frames_in_critical_ratio"}
+{"bench": "oracle_calibration_summary", "perturb", "widen", "scenes", "events_inside",
+ "events", "deposit_inside", "deposits", "bytes_ratio", "frames_in_critical_ratio"}
 
 Actual: the full MPM run (every particle, every 5 ms): its events by the oracle's own rules
 (gns.events) and its deposit (gns.metrics.deposit). Frames and bytes: the spec's
@@ -54,6 +54,11 @@ CONFIG = Path("gns/configs/column_sweep_cg2.toml")
 CHECKPOINT = Path("gns/checkpoints/column_l64_m5.pt")
 BYTES_PER_PARTICLE = 24  # position and displacement, float32 x 3 each
 MEASURES = ("runout_m", "height_m", "displacement_max_m")
+KEYS = {"oracle_calibration": ("scene", "perturb", "members", "widen", "events", "deposit",
+                               "frames", "bytes", "rollout_s"),
+        "oracle_calibration_summary": ("perturb", "widen", "scenes", "events_inside", "events",
+                                       "deposit_inside", "deposits", "bytes_ratio",
+                                       "frames_in_critical_ratio")}
 
 
 def make_runs(cfg, runs: Path, scenes: list[str] | None, threads: int) -> list:
@@ -152,10 +157,13 @@ def main() -> None:
                     help="interval widening factors to score (gns.ensemble.band)")
     ap.add_argument("--frames", type=int, default=120, help="the specs' frame budget")
     ap.add_argument("--threads", type=int, default=1, help="torch and numba threads")
+    ap.add_argument("--config", type=Path, default=CONFIG,
+                    help=f"the sweep config whose test split is scored (default: {CONFIG}, "
+                         "the checkpoint's data)")
     args = ap.parse_args()
     tune_allocator()
     torch.set_num_threads(args.threads)
-    cfg = load_config(CONFIG)
+    cfg = load_config(args.config)
     args.out.mkdir(parents=True, exist_ok=True)
     plans = make_runs(cfg, args.runs, args.scene, args.threads)
     model, ckpt = load_checkpoint(args.checkpoint)

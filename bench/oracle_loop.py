@@ -48,14 +48,19 @@ CONFIG = ROOT / "gns" / "configs" / "column_sweep_cg2.toml"
 CHECKPOINT = ROOT / "gns" / "checkpoints" / "column_l64_m5.pt"
 RUN = "loop"
 SCENES = ("test_003", "friction_20", "friction_45", "aspect_5", "wide_10x")
+KEYS = {"oracle_loop": ("scene", "loop", "events_within", "events", "events_within_in_force",
+                        "regions_share", "frames_vs_ideal?", "frames_in_critical",
+                        "frames_ratio?", "bytes_share", "updates", "forecasts",
+                        "forecast_wall_s", "run_wall_s", "frames", "event_errors",
+                        "event_error_max?", "displacement_error?")}
 
 
-def scene_plans(names: list[str]):
+def scene_plans(names: list[str], config: Path = CONFIG):
     """The sweep plans of the scenes: the config's test scenes, or test_003's column with
     another friction angle, or a column of aspect ratio 5 (H0 0.32 m over L0 0.064 m)."""
     from minority.gns.sweep import load_config, plan
 
-    cfg = load_config(CONFIG)
+    cfg = load_config(config)
     plans = {p.name: p for p in plan(cfg) if p.split == "test"}
     base = plans["test_003"]
     plans["friction_20"] = replace(base, name="friction_20", friction_angle_deg=20.0)
@@ -211,10 +216,13 @@ def main(argv: list[str] | None = None) -> int:
                          "instead of reusing OUT/SCENE/spec.json")
     ap.add_argument("--threads", type=int, default=1, help="threads per process")
     ap.add_argument("--timeout", type=float, default=1800.0, help="wall s per run at most")
+    ap.add_argument("--config", type=Path, default=CONFIG,
+                    help="the sweep config whose test scenes these are (default: "
+                         "gns/configs/column_sweep_cg2.toml; the checkpoint's resolution)")
     args = ap.parse_args(argv)
     from minority.sweep import scene_toml
 
-    cfg, plans = scene_plans(args.scenes)
+    cfg, plans = scene_plans(args.scenes, args.config)
     for p in plans:
         d = args.out / p.name
         d.mkdir(parents=True, exist_ok=True)

@@ -8,12 +8,21 @@ server runs in its own process pinned to core 1 (`minority serve --exit-when-don
 simulation runs as 1 rank in this process, pinned to core 0 with one numba thread, twice
 for --steps steps from rest: first without publishing, then publishing to the server.
 
+{"bench": "paper_table", "scene", "particles", "steps", "repeats", "rendered_steps",
+ "skipped_steps", "receive_s", "setup_s", "render_s", "total_s", "sim_step_s", "viz_overhead",
+ "viz_overhead_median", "prepare_s", "stats_s", "sent_mb"}
+
     receive_s, setup_s, render_s, total_s   mean per rendered step, from the server's log
                                             (as `minority report` computes them)
+    rendered_steps   steps rendered over all runs; skipped_steps: per publishing run, the
+                     steps published but not rendered (a newer step replaced it before the
+                     server was free: its first frame, cold, takes ~0.6 s at 13k)
     sim_step_s       the sim's stepping wall time per step without publishing (fastest run)
     viz_overhead     fastest stepping wall time when publishing / fastest without - 1, over
                      --repeats alternated runs (each publishing run with a fresh server);
                      viz_overhead_median the same from the medians
+    prepare_s, stats_s, sent_mb   the sim thread's own share of publishing (cull, encode,
+                     queue; Stats) in s and the MB it sent, medians over the publishing runs
 
 The reference paper (Galaxy, 13k / 100k / 1M particles): 0.224 / 2.521 / 3.376 s per in situ
 step; its companion paper reports a 2 % amortized cost to the simulation.
@@ -35,6 +44,10 @@ import numpy as np
 RUN = "paper"
 EVERY = 20
 SIM_CORE, SERVER_CORE = 0, 1
+KEYS = {"paper_table": ("scene", "particles", "steps", "repeats", "rendered_steps",
+                        "skipped_steps", "receive_s", "setup_s", "render_s", "total_s",
+                        "sim_step_s", "viz_overhead", "viz_overhead_median", "prepare_s",
+                        "stats_s", "sent_mb")}
 
 
 def spec_for(scene: Path):
@@ -90,6 +103,7 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
 
 
 def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
+    from minority.protocol.costs import step_accounting
     from minority.sim.scene import builtin_scene_path
 
     from minority.report import load_run, timing_table
@@ -104,13 +118,17 @@ def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
                                       work)
         loud.append(wall)
         published.append(pub)
-    steps_timed = [s for k in range(repeats)
-                   for s in timing_table(load_run(work / f"{scene_name}.{k}.mcap")).steps]
+    steps_timed, skipped = [], []
+    for k in range(repeats):
+        log = load_run(work / f"{scene_name}.{k}.mcap")
+        table = timing_table(log)
+        steps_timed += table.steps
+        skipped.append(len(step_accounting(log, table).unrendered))
     mean = {p: float(np.mean([getattr(s, f"{p}_s") for s in steps_timed]))
             for p in ("receive", "setup", "render")}
     return {"bench": "paper_table", "scene": scene_name,
             "particles": max(s.particles for s in steps_timed), "steps": steps,
-            "repeats": repeats, "rendered_steps": len(steps_timed),
+            "repeats": repeats, "rendered_steps": len(steps_timed), "skipped_steps": skipped,
             **{f"{p}_s": round(v, 4) for p, v in mean.items()},
             "total_s": round(sum(mean.values()), 4),
             "sim_step_s": round(min(quiet) / steps, 5),

@@ -2,12 +2,13 @@
 
 Prints one JSON object per particle count:
 {"bench": "protocol", "particles": N, "bytes": B, "encode_s", "decode_s", "transport_s",
- "raw_zenoh_s", "record_s"}  (medians, seconds)
+ "raw_zenoh_s", "subscriber_decode_s", "record_s"}  (medians, seconds)
 
 transport_s: our Publisher.put of an encoded chunk -> a subscriber in another process has
-the decoded, validated Chunk. raw_zenoh_s: the same bytes through a plain zenoh put -> the
-subscriber holds the bytes. Both over the same sessions (loopback TCP + shared memory),
-paced one message at a time, latency from the send stamp in the payload to arrival.
+the decoded, validated Chunk (subscriber_decode_s: that decode, timed in the subscriber).
+raw_zenoh_s: the same bytes through a plain zenoh put -> the subscriber holds the bytes.
+Both over the same sessions (loopback TCP + shared memory), paced one message at a time,
+latency from the send stamp in the payload to arrival.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ from minority.protocol.wire import SENT_NS_OFFSET, stamp_sent
 RUN = "bench"
 RAW_KEY = "bench/raw"
 SIZES = {13_000: 200, 100_000: 60, 1_000_000: 15}  # particles -> repetitions
+KEYS = {"protocol": ("particles", "bytes", "encode_s", "decode_s", "transport_s", "raw_zenoh_s",
+                     "subscriber_decode_s", "record_s")}
 
 
 def make_chunk(n: int) -> Chunk:

@@ -2,8 +2,8 @@
 1024x768, medians over several steps.
 
 Prints one JSON object per particle count:
-{"bench": "render", "particles": N, "width": 1024, "height": 768, "receive_s", "setup_s",
- "render_s", "total_s"}
+{"bench": "render", "particles": N, "width": 1024, "height": 768, "shadows", "receive_s",
+ "setup_s", "render_s", "total_s"}
 receive_s: the sender's stamp to the arrival of the chunk that completes the step, setup_s:
 k-d bricks (and grids when shadows are on), render_s: ray casting and shading (PNG encoding
 excluded), as the server's Timing messages report them, medians after WARMUP_STEPS steps.
@@ -43,6 +43,9 @@ HEAP_M = (0.6, 0.144, 0.32)  # runout length, channel width, initial height of t
 WAIT_S = 600.0
 DOMAIN_M = ((0.0, 0.0, 0.0), (1.0, 0.144, 0.4))  # the chunks' bounds: floor z = 0, walls y
 OVERLAY_FRAMES = 200  # frames the overlay is applied to (median)
+KEYS = {"render": ("particles", "width", "height", "shadows", "receive_s", "setup_s", "render_s",
+                   "total_s"),
+        "overlay": ("width", "height", "compose_s", "apply_s", "context_px", "legend_px")}
 
 
 def heap(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:

@@ -5,37 +5,54 @@ the MPM seeds them, in the sim's order) and a synthetic 8M-particle step (unifor
 positions in the same column box, random order). One aerial view at 1024x768 and 2048x1536.
 N = 1 with 2 numba threads, N = 2 with 1 thread each (on a 2-core machine: the same cores).
 Each rank starts with its share as the wire bytes of one Chunk (1/N of the rows, as if it
-had received them from its sim ranks). Prints one JSON line per configuration:
+had received them from its sim ranks).
+
+    python -m bench.render_mpi [--large N] [--scene column_1m] [--sizes 1024x768 2048x1536]
+
+(`--scene tiny --sizes 64x48 128x96 --large 0`: a smoke test in seconds.) Prints one JSON
+line per configuration:
 
 {"bench": "render_mpi", "particles", "width", "height", "ranks", "threads", "receive_s",
  "exchange_s", "setup_s", "render_s", "composite_s", "total_s", "peak_rss_bytes": [per rank],
- "counts": [particles per rank after the exchange]}
+ "counts": [particles per rank after the exchange], "message_s"}
 
 receive_s: decoding the rank's chunk (protocol checks, no network); exchange_s: the slab
 test, sample, k-d tree, classification and the packed Alltoallv rounds (render_server.
 distribute); setup_s: bricks; render_s: ray casting and shading; composite_s: sparse
 direct-send compositing and the gather to rank 0; total_s: receive plus the whole
-distributed step. Each phase is the slowest rank's, the median of REPEATS steps after one
-warm-up step; peak RSS is each process's maximum resident set (ru_maxrss), which includes
-the interpreter, numba and MPI (the "baseline_rss_bytes" lines, at N = 1 and 2, say how
-much: a process that imported everything and rendered a tiny step, measured after a first
-such run that compiled every kernel, so no peak includes compilation).
+distributed step; message_s: one small message per peer (an 8-byte Alltoall). Each phase
+is the slowest rank's, the median of REPEATS steps after one warm-up step; peak RSS is each
+process's maximum resident set (ru_maxrss), which includes the interpreter, numba and MPI
+(the "baseline_rss_bytes" lines, at N = 1 and 2, say how much: a process that imported
+everything and rendered a tiny step, measured after a first such run that compiled every
+kernel, so no peak includes compilation; the same keys as "render_mpi").
+
+"render_mpi_shadows" (first): why shadows are refused on several ranks (shadow_needs):
+{"bench": "render_mpi_shadows", "particles", "ranks", "own", "extra_for_shadows",
+ "extra_over_own", "ray_start_bytes_per_view"}
 
 "render_mpi_ratio" lines compare N = 2 with N = 1 per step and size (total time, the
 composite's share of the N = 2 total, peak RSS, peak RSS above each one's baseline, and
 rss_if_halved_2_over_1: the ratio an N = 2 rank would reach holding exactly half of what the
 N = 1 process holds above its baseline, on top of its own baseline: the floor's limit, which
-falls as the per-particle bytes grow and rises as they shrink).
+falls as the per-particle bytes grow and rises as they shrink):
+{"bench": "render_mpi_ratio", "particles", "width", "total_2_over_1", "composite_share_2",
+ "rss_2_over_1", "rss_above_baseline_2_over_1", "rss_if_halved_2_over_1"}
 
 "render_mpi_model" lines: each step's time per step for N = 1 .. 64 ranks at 1024x768 from
 its N = 2 costs (bench.render_mpi.costs: per particle of receive, exchange, setup plus
 render; per pixel of render and composite; per message; bytes per particle), one core per
 rank, messages at the measured shared-memory cost:
 t(N) = c_recv n/N + c_move n/N 2(N-1)/N + c_msg (N-1) + c_part n/N + c_pix P + c_comp P
-+ 2 c_msg (N-1), peak RSS per rank = baseline + bytes_per_particle n/N.
++ 2 c_msg (N-1), peak RSS per rank = baseline + bytes_per_particle n/N:
+{"bench": "render_mpi_model", "particles", "width", "height", "ranks", "receive_s",
+ "exchange_s", "render_s", "composite_s", "total_s", "peak_rss_bytes_per_rank"}
 "render_mpi_large": what a LARGE_RUN-particle run would need on that model (per-particle
 costs and bytes of the random step, the larger per-pixel costs of the two steps): ranks,
-peak RSS per rank, time per step at 1024x768.
+peak RSS per rank, time per step at 1024x768:
+{"bench": "render_mpi_large", "particles", "width", "height", "ranks", "receive_s",
+ "exchange_s", "render_s", "composite_s", "total_s", "peak_rss_bytes_per_rank",
+ "pixel_floor_s", "costs_from", "memory_per_rank_limit", "step_s_limit"}
 """
 
 from __future__ import annotations
@@ -52,6 +69,20 @@ import numpy as np
 
 RUN = "bench-render-mpi"
 SIZES = ((1024, 768), (2048, 1536))
+SCENE = "column_1m"
+_STEP = ("particles", "width", "height", "ranks", "threads", "receive_s", "exchange_s", "setup_s",
+         "render_s", "composite_s", "total_s", "peak_rss_bytes", "counts", "message_s")
+_MODEL = ("particles", "width", "height", "ranks", "receive_s", "exchange_s", "render_s",
+          "composite_s", "total_s", "peak_rss_bytes_per_rank")
+KEYS = {"render_mpi_shadows": ("particles", "ranks", "own", "extra_for_shadows", "extra_over_own",
+                               "ray_start_bytes_per_view"),
+        "baseline_rss_bytes": _STEP, "render_mpi": _STEP,
+        "render_mpi_ratio": ("particles", "width", "total_2_over_1", "composite_share_2",
+                             "rss_2_over_1", "rss_above_baseline_2_over_1",
+                             "rss_if_halved_2_over_1"),
+        "render_mpi_model": _MODEL,
+        "render_mpi_large": (*_MODEL, "pixel_floor_s", "costs_from", "memory_per_rank_limit",
+                             "step_s_limit")}
 COLUMN_BOX_M = ((0.0, 0.0, 0.0), (0.144, 0.144, 0.32))
 DOMAIN_M = ((0.0, 0.0, 0.0), (0.8, 0.144, 0.4))
 REPEATS = 3
@@ -64,14 +95,15 @@ STEP_S = 1.0  # s: the time per step that line aims for
 TIMEOUT_S = 1800
 
 
-def column_share(rank: int, ranks: int) -> tuple[np.ndarray, np.ndarray, float]:
+def column_share(rank: int, ranks: int, scene_name: str = SCENE
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
     """This rank's contiguous share of the showcase column's particles as the MPM seeds them
     (lattice points (i + 1/2) * spacing in the column's box, x-major, the sim's id order):
     positions [k, 3] float32 m, displacement [k, 3] float32 m (zero at seeding: a ramp in
     height instead, for colour), spacing m."""
     from minority.sim.scene import builtin_scene_path, load_scene
 
-    scene = load_scene(builtin_scene_path("column_1m"))
+    scene = load_scene(builtin_scene_path(scene_name))
     s = scene.particle_spacing_m
     body = scene.bodies[0]
     axes = [(np.arange(round(lo / s), round(hi / s)) + 0.5) * s
@@ -124,7 +156,7 @@ def message_cost(comm, rounds: int = 200) -> float:
     return (time.perf_counter() - t0) / rounds / (comm.size - 1)
 
 
-def worker(kind: str, n: int, threads: int) -> None:
+def worker(kind: str, n: int, threads: int, scene: str = SCENE, sizes=SIZES) -> None:
     """One mpiexec job: every image size, REPEATS + 1 steps each; rank 0 prints JSON."""
     import numba
     from minority.protocol import Chunk, decode_as
@@ -136,13 +168,13 @@ def worker(kind: str, n: int, threads: int) -> None:
     if kind == "baseline":  # what a process costs before any particle: tiny step
         pos, disp, spacing = random_share(4096, comm.rank, comm.size)
     else:
-        pos, disp, spacing = (column_share(comm.rank, comm.size) if kind == "column"
+        pos, disp, spacing = (column_share(comm.rank, comm.size, scene) if kind == "column"
                               else random_share(n, comm.rank, comm.size))
     payload = Chunk(RUN, 1, 1e-3, comm.rank, comm.size, spacing, DOMAIN_M,
                     {"positions": pos, "displacement": disp}).encode()
     del pos, disp  # the rank holds its received bytes, as a server does
     msg_s = message_cost(comm)
-    for width, height in (SIZES[:1] if kind == "baseline" else SIZES):
+    for width, height in (sizes[:1] if kind == "baseline" else sizes):
         v = view(width, height)
         canvases, layers, rows = {}, Layers(), []
         for rep in range(REPEATS + 1):
@@ -173,7 +205,7 @@ def worker(kind: str, n: int, threads: int) -> None:
             print(json.dumps(line), flush=True)
 
 
-def shadow_needs(ranks: int = 2) -> dict:
+def shadow_needs(ranks: int = 2, scene: str = SCENE, size=SIZES[0]) -> dict:
     """Why shadows are refused on several ranks, measured on the 1M column: the particles
     each rank would have to hold besides its own brick to cast its own shadow rays (those
     lying between its brick and the key light: the ray from the particle away from the
@@ -182,13 +214,13 @@ def shadow_needs(ranks: int = 2) -> dict:
     from minority.render_server.distribute import build_tree, classify
     from minority.render_server.render import key_light
 
-    pos, _, spacing = column_share(0, 1)
+    pos, _, spacing = column_share(0, 1, scene)
     keys = np.arange(len(pos), dtype=np.int64)
     lo, hi = pos.min(axis=0).astype(np.float64), pos.max(axis=0).astype(np.float64)
     tree = build_tree(pos[::max(1, len(pos) // 65536)].astype(np.float64),
                       keys[::max(1, len(pos) // 65536)], ranks, lo, hi)
     owner = classify(pos, keys, tree)
-    v = view(*SIZES[0])
+    v = view(*size)
     toward = -key_light(v)  # from a blocker back toward the surface it shades
     r = 0.5 * spacing
     extra = []
@@ -205,13 +237,15 @@ def shadow_needs(ranks: int = 2) -> dict:
     return {"bench": "render_mpi_shadows", "particles": len(pos), "ranks": ranks,
             "own": own.tolist(), "extra_for_shadows": extra,
             "extra_over_own": [round(float(e / o), 3) for e, o in zip(extra, own, strict=True)],
-            "ray_start_bytes_per_view": SIZES[0][0] * SIZES[0][1] * 24}
+            "ray_start_bytes_per_view": size[0] * size[1] * 24}
 
 
-def launch(kind: str, n: int, ranks: int, threads: int) -> list[dict]:
+def launch(kind: str, n: int, ranks: int, threads: int, scene: str = SCENE,
+           sizes=SIZES) -> list[dict]:
     mpiexec = os.path.join(os.path.dirname(sys.executable), "mpiexec")
     cmd = [mpiexec, "-n", str(ranks), sys.executable, "-m", "bench.render_mpi", "--worker",
-           kind, "--particles", str(n), "--threads", str(threads)]
+           kind, "--particles", str(n), "--threads", str(threads), "--scene", scene,
+           "--sizes", *(f"{w}x{h}" for w, h in sizes)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S,
                           env={**os.environ, "NUMBA_NUM_THREADS": str(threads)})
     if proc.returncode:
@@ -293,6 +327,17 @@ def large_run(steps: list[tuple[dict, dict]], base_two: dict, n: int = LARGE_RUN
             "step_s_limit": STEP_S}
 
 
+def image_size(text: str) -> tuple[int, int]:
+    """WxH (pixels) as (W, H); argparse's type for --sizes."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an image size WxH: {text!r}") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"an image size must be positive: {text!r}")
+    return width, height
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m bench.render_mpi",
@@ -305,6 +350,10 @@ def main(argv: list[str] | None = None) -> None:
                     "would need). Half a minute to two minutes on 2 cores.")
     parser.add_argument("--large", type=int, default=8_000_000,
                         help="particles of the synthetic step (default 8,000,000; 0: skip it)")
+    parser.add_argument("--scene", default=SCENE,
+                        help=f"the built-in scene whose column is rendered (default {SCENE})")
+    parser.add_argument("--sizes", nargs=2, type=image_size, default=SIZES, metavar="WxH",
+                        help="the two image sizes (default 1024x768 2048x1536)")
     parser.add_argument("--worker", choices=("column", "random", "baseline"),
                         help=argparse.SUPPRESS)
     parser.add_argument("--particles", type=int, default=0, help=argparse.SUPPRESS)
@@ -312,7 +361,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.worker:
         try:
-            worker(args.worker, args.particles, args.threads)
+            worker(args.worker, args.particles, args.threads, args.scene, args.sizes)
         except BaseException:  # one rank failing must not leave the others waiting
             import traceback
 
@@ -322,21 +371,22 @@ def main(argv: list[str] | None = None) -> None:
             sys.stderr.flush()
             MPI.COMM_WORLD.Abort(1)
         return
-    print(json.dumps(shadow_needs()), flush=True)
+    sizes, scene = args.sizes, args.scene
+    print(json.dumps(shadow_needs(scene=scene, size=sizes[0])), flush=True)
     base = {}
     for ranks, threads in ((1, 2), (2, 1)):  # the first compiles (or loads) every kernel
-        launch("baseline", 0, ranks, threads)
-        base[ranks] = launch("baseline", 0, ranks, threads)[0]
+        launch("baseline", 0, ranks, threads, scene, sizes)
+        base[ranks] = launch("baseline", 0, ranks, threads, scene, sizes)[0]
         print(json.dumps(base[ranks]), flush=True)
     steps = [("column", 0)] + ([("random", args.large)] if args.large else [])
-    w0, w1 = SIZES[0][0], SIZES[1][0]
+    w0, w1 = sizes[0][0], sizes[1][0]
     rows = {}
     for kind, n in steps:
         for ranks, threads in ((1, 2), (2, 1)):
-            for line in launch(kind, n, ranks, threads):
+            for line in launch(kind, n, ranks, threads, scene, sizes):
                 rows[kind, ranks, line["width"]] = line
                 print(json.dumps(line), flush=True)
-        for width, _ in SIZES:
+        for width, _ in sizes:
             one, two = rows[kind, 1, width], rows[kind, 2, width]
             above = ((max(two["peak_rss_bytes"]) - max(base[2]["peak_rss_bytes"]))
                      / max(one["peak_rss_bytes"][0] - base[1]["peak_rss_bytes"][0], 1))

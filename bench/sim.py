@@ -1,5 +1,8 @@
 """MPM throughput benchmark: two JSON lines per scene (13k, 100k, ~1M particles).
 
+{"bench": "sim", "scene", "particles", "threads", "material", "window", "from_step",
+ "from_time_s", "steps", "seconds", "particle_steps_per_s", "phase_fraction"}
+
     python -m bench.sim [--threads N] [--steps-13k S] [--steps-100k S] [--steps-1m S]
                         [--loaded-at-s T]
 
@@ -30,6 +33,8 @@ from minority.sim.scene import builtin_scene_path, load_scene
 SCENES = (("column_13k", 200), ("column_100k", 50), ("column_1m", 5))
 WARMUP_STEPS = 2
 LOADED_AT_S = 0.015  # s; the P-wave (~39 m/s) crosses the 0.32 m column in ~8 ms
+KEYS = {"sim": ("scene", "particles", "threads", "material", "window", "from_step",
+                "from_time_s", "steps", "seconds", "particle_steps_per_s", "phase_fraction")}
 
 
 def _timed(sim: Simulator, name: str, steps: int, threads: int, window: str) -> dict:

@@ -2,6 +2,11 @@
 
     python -m bench.sim_mpi [--ranks 1 2] [--steps 200] [--scene column_100k] [--every 20]
 
+{"bench": "sim_mpi", "scene", "particles", "ranks", "threads_per_rank", "steps",
+ "loop_wall_s", "particle_steps_per_s", "publish_fraction", "efficiency",
+ "compute_cpu_efficiency", "chunks_sent", "chunks_dropped", "chunks_received", "bytes_sent",
+ "rebalances", "migrated", "rank_particles", "rank_compute_cpu_s", "rank_phases_s"}
+
 Run as a module from the repository root. The benchmark process is the server side: a
 listening zenoh peer on loopback that serves a spec asking for every particle's
 displacement every `--every` steps (a full publish) and counts the chunks it receives.
@@ -13,7 +18,8 @@ scene from rest for `--steps` steps through `sim.ranks.run_ranks`.
                           exchanges, culling, encoding and queueing chunks)
     publish_fraction      share of that wall time the slowest rank spent preparing and
                           queueing chunks (the sender thread's puts are not in it)
-    efficiency            particle_steps_per_s / (R * the 1-rank value), when measured
+    efficiency            particle_steps_per_s / (R * the 1-rank value); null without a
+                          1-rank run before it
     compute_cpu_efficiency  the same from the CPU time each rank spent in the MPM phases
                           (bin, P2G, grid, G2P): load balance and per-rank work without
                           time lost to other processes on a shared machine, nor exchanges
@@ -32,6 +38,11 @@ from pathlib import Path
 
 RUN = "bench-mpi"
 TIMEOUT_S = 600
+KEYS = {"sim_mpi": ("scene", "particles", "ranks", "threads_per_rank", "steps", "loop_wall_s",
+                    "particle_steps_per_s", "publish_fraction", "efficiency?",
+                    "compute_cpu_efficiency?", "chunks_sent", "chunks_dropped",
+                    "chunks_received", "bytes_sent", "rebalances", "migrated", "rank_particles",
+                    "rank_compute_cpu_s", "rank_phases_s")}
 
 
 def free_endpoint() -> str:
@@ -134,6 +145,7 @@ def main() -> None:
                 result["chunks_received"] = received["chunks"]
             if ranks == 1:
                 base = result
+            result["efficiency"] = result["compute_cpu_efficiency"] = None
             if base:
                 result["efficiency"] = round(result["particle_steps_per_s"]
                                              / (ranks * base["particle_steps_per_s"]), 3)

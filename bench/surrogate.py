@@ -43,6 +43,8 @@ from minority.warmstart import predict_scene
 # rounded up to whole cells (the column and channel width are unchanged)
 COARSE = [(0.048, 2), (0.036, 2), (0.024, 2), (0.016, 1)]
 CG_FACTOR = 2  # the GNS data's coarse_grain (gns/configs/column_sweep_cg2.toml)
+KEYS = {"surrogate": ("oracle", "particles", "run_s", "runout_error", "height_error",
+                      "displacement_range_error", "peak_s", "rest_s")}
 
 
 def coarse_scene(text: str, cell: float, ppc: int, size) -> str:
@@ -93,6 +95,9 @@ def main() -> None:
     ap.add_argument("--start", choices=("mpm", "rest"), default="mpm",
                     help="GNS first frames: from the MPM (the oracle's default) or at rest")
     args = ap.parse_args()
+    missing = [str(c) for c in args.checkpoints if not c.is_file()]
+    if missing:  # before the target run, not after its minutes
+        ap.error(f"no such checkpoint: {', '.join(missing)}")
     tune_allocator()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -26,6 +26,7 @@ from minority.sim.state import seed_particles
 VIEWS = {"side": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "top": ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
          "aerial": (AERIAL_DIRECTION, (0.0, 0.0, 1.0))}
 WIDTH, HEIGHT = 1024, 768
+KEYS = {"visibility": ("scene", "particles", "view", "kept", "s")}
 
 
 def views_for(positions: np.ndarray, margin: float = 0.1) -> list[View]:

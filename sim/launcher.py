@@ -152,7 +152,7 @@ def remove_orphan_segments(before: set[Path], shm_dir: Path = SHM_DIR) -> list[P
     new = mpich_segments(shm_dir) - before
     if not new:
         return []
-    held = _held_paths()
+    held = _held_paths(shm_dir)
     removed = []
     for path in sorted(new - held):
         try:
@@ -163,11 +163,11 @@ def remove_orphan_segments(before: set[Path], shm_dir: Path = SHM_DIR) -> list[P
     return removed
 
 
-def _held_paths() -> set[Path]:
-    """The files under /dev/shm that this user's live processes map or hold open (from
-    /proc/PID/maps and /proc/PID/fd)."""
+def _held_paths(shm_dir: Path = SHM_DIR) -> set[Path]:
+    """The files in shm_dir that live processes (those this user may inspect) map or hold
+    open, from /proc/PID/maps and /proc/PID/fd."""
     held: set[Path] = set()
-    prefix = str(SHM_DIR) + "/"
+    prefix = str(shm_dir) + "/"
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
             continue

@@ -11,6 +11,7 @@ the progress line of the second frame on stderr, not for a time."""
 
 from __future__ import annotations
 
+import mmap
 import os
 import queue
 import re
@@ -27,6 +28,7 @@ from conftest import free_port
 from mcap.reader import make_reader
 from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, read_log
 from minority.protocol.messages import Event, EventKind, Stats
+from minority.sim import launcher
 from minority.sim.launcher import StopSignals, stopped_status
 from minority.sim.scene import SCENES_DIR
 
@@ -295,6 +297,24 @@ def descendants(pid: int) -> list[int]:
 def mpich_segments_of(pid: int) -> set[Path]:
     maps = Path(f"/proc/{pid}/maps").read_text()
     return {Path(m) for m in re.findall(r"(/dev/shm/mpich_\S+)", maps)}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc")
+def test_only_new_mpich_segments_that_no_process_holds_are_removed(tmp_path):
+    names = ("mpich_shm_old_0", "mpich_shm_new_0", "mpich_vci_new_0", "mpich_shm_held_0",
+             "mpich_shm_mapped_0", "other_0")
+    for name in names:
+        (tmp_path / name).write_bytes(b"\0" * 4096)
+    before = {tmp_path / "mpich_shm_old_0"}
+    assert launcher.mpich_segments(tmp_path) == {tmp_path / n for n in names[:5]}
+    with open(tmp_path / "mpich_shm_mapped_0", "rb") as f:
+        mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # the fd closes, the map stays
+    with open(tmp_path / "mpich_shm_held_0", "rb"):
+        removed = launcher.remove_orphan_segments(before, tmp_path)
+    mapped.close()
+    assert removed == [tmp_path / "mpich_shm_new_0", tmp_path / "mpich_vci_new_0"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["mpich_shm_old_0", "mpich_shm_held_0", "mpich_shm_mapped_0", "other_0"])
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and /dev/shm")

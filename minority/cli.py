@@ -354,8 +354,11 @@ def _sim_bad_input(args: argparse.Namespace) -> str | None:
             return f"{flag} must be at least {least}, got {value}"
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0.0):
         return f"--dt must be a finite time step > 0 s, got {args.dt}"
-    if not (math.isfinite(args.wait) and args.wait >= 0.0):
-        return f"--wait must be a finite number of seconds >= 0, got {args.wait}"
+    for flag, value, unit in (("--wait", args.wait, "seconds"),
+                              ("--stats-every-s", args.stats_every_s, "seconds"),
+                              ("--context-tolerance", args.context_tolerance, "metres")):
+        if not (math.isfinite(value) and value >= 0.0):
+            return f"{flag} must be a finite number of {unit} >= 0, got {value}"
     if args.run is not None and not NAME_RE.match(args.run):
         return (f"--run {args.run!r}: a run id is 1-64 characters of A-Za-z0-9_.- starting "
                 "with a letter, digit or underscore")

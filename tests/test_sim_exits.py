@@ -96,6 +96,9 @@ def test_a_missing_scene_file_or_a_directory_is_bad_input(capsys, tmp_path):
     (["--dt", "nan"], "--dt must be a finite time step > 0 s, got nan"),
     (["--wait", "-1"], "--wait must be a finite number of seconds >= 0, got -1.0"),
     (["--wait", "inf"], "--wait must be a finite number of seconds >= 0, got inf"),
+    (["--stats-every-s", "-1"], "--stats-every-s must be a finite number of seconds >= 0, got -1.0"),
+    (["--context-tolerance", "nan"],
+     "--context-tolerance must be a finite number of metres >= 0, got nan"),
 ])
 def test_a_bad_value_is_bad_input_naming_it(capsys, tmp_path, tiny, argv, message):
     out = tmp_path / "x.h5"

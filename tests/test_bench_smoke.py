@@ -72,17 +72,17 @@ def check_lines(module: str, lines: list[dict], expect: set[str] | None = None) 
     assert not absent, f"bench.{module} printed no {sorted(absent)} line"
 
 
-def run_bench(module: str, *args, expect: set[str] | None = None, env: dict | None = None,
-              timeout_s: float = TIMEOUT_S) -> list[dict]:
-    """`python -m bench.{module} ARGS` from the repository root: its stdout must be JSON lines
-    only, checked by check_lines; returns them."""
+def run_bench(module: str, *args) -> list[dict]:
+    """`python -m bench.{module} ARGS` from the repository root, one numba thread per process
+    unless the bench sets its own: its stdout must be JSON lines only, checked by
+    check_lines; returns them."""
     proc = subprocess.run([sys.executable, "-m", f"bench.{module}", *map(str, args)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout_s,
-                          env={**os.environ, "NUMBA_NUM_THREADS": "1", **(env or {})})
+                          capture_output=True, text=True, timeout=TIMEOUT_S,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "1"})
     assert proc.returncode == 0, f"bench.{module} failed:\n{proc.stderr[-4000:]}"
     lines = [json.loads(text) for text in proc.stdout.splitlines() if text.strip()]
     assert lines, f"bench.{module} printed nothing"
-    check_lines(module, lines, expect)
+    check_lines(module, lines)
     return lines
 
 
@@ -156,6 +156,8 @@ def test_smoke_insitu():
 
 
 def test_smoke_paper_table(tmp_path):
+    """Two publishing runs, each with a fresh server on the same --out: the second logs to
+    the --record path given although the first run's frame folder exists (issue 46)."""
     run_bench("paper_table", "--scenes", "tiny", "--steps", 40, "--repeats", 2, "--keep",
               tmp_path)
 
@@ -189,7 +191,7 @@ def test_smoke_oracle_calibration(small_sweep, tmp_path):
 
 
 def test_smoke_oracle_loop(small_sweep, tmp_path):
-    """The closed loop only: it runs all the open loop runs, and the follower."""
+    """The closed loop only: the open loop's server and 2-rank sim, and the follower."""
     run_bench("oracle_loop", "--config", small_sweep, "--scenes", "test_003", "--frames", 12,
               "--loops", "closed", "--out", tmp_path)
 

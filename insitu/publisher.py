@@ -80,6 +80,7 @@ from minority.insitu.sender import (  # noqa: F401 (BLOCK_TIMEOUT_S, SENDER_QOS:
     _Tally,
 )
 from minority.protocol import keys
+from minority.protocol.auth import CredentialsError
 from minority.protocol.errors import ProtocolError, SpecError
 from minority.protocol.messages import (
     Chunk,
@@ -259,7 +260,11 @@ class RankPublisher(Sender):
 
         try:
             self.session = open_session(opts, Role.CLIENT, configure)
-        except (zenoh.ZError, OSError) as exc:  # OSError: unusable credentials (protocol.auth)
+        except CredentialsError as exc:  # not authenticated: nothing sent (protocol.auth)
+            self.connect_s = time.monotonic() - t0
+            self.no_server_reason = f"not connecting: {exc}"
+            return False
+        except (zenoh.ZError, OSError) as exc:
             self.connect_s = time.monotonic() - t0
             where = ", ".join(opts.connect) or "the default endpoint"
             why = str(exc).split("  at ")[0].strip()  # drop zenoh's source location
@@ -594,15 +599,13 @@ class RankPublisher(Sender):
         if self._thread is not None:
             self._thread.join(timeout=self.options.drain_timeout_s)
         if self._writer is not None and (self._thread is None or not self._thread.is_alive()):
-            if self.stats.record_errors:
-                self._writer.abandon()  # no summary after the failed write
-            else:
-                try:
-                    self._writer.close()
-                except OSError as exc:
-                    print(f"minority: rank {self.rank}: cannot finish its record: {exc}",
-                          file=self.log, flush=True)
-                    self._writer.abandon()
+            w = self._writer
+            if not w.finish() and not self.stats.record_errors:  # the last chunk failed
+                with self._lock:
+                    self.stats.recorded = w.written + w.rejected
+                    self.stats.record_errors = max(1, w.unwritten)
+                print(f"minority: rank {self.rank}: its record is incomplete: {w.failure}; "
+                      f"{w.ending}", file=self.log, flush=True)
         return self.stats
 
     def summary(self) -> dict:

@@ -165,8 +165,9 @@ class Sender:
 
     def _record(self, item: OutboxItem) -> int:
         """Write the message to the rank's record; 1 if written. The record ends at its first
-        failed write (a full disk; what follows a partial write could not be read back):
-        that message and the later ones are counted in record_errors; publishing goes on."""
+        failed write (a full disk): the writer cuts it back to its last complete chunk, so
+        the messages of the chunk it was filling, that message and the later ones are
+        counted in record_errors (and taken back from recorded); publishing goes on."""
         if self._writer is None:
             return 0
         if self.stats.record_errors:
@@ -177,10 +178,13 @@ class Sender:
             self._writer.write_payload(item.key, bytes(item.payload))
             return 1
         except OSError as exc:
+            w = self._writer
             with self._lock:
-                self.stats.record_errors += 1
-            print(f"minority: rank {self.rank}: cannot write its record: {exc}; the record "
-                  "ends here, publishing goes on", file=self.log, flush=True)
+                self.stats.recorded = w.written + w.rejected
+                self.stats.record_errors = max(1, w.unwritten)
+            print(f"minority: rank {self.rank}: cannot write its record: {exc}; "
+                  f"{w.ending or 'the record ends here'}; publishing goes on", file=self.log,
+                  flush=True)
             return 0
 
     def _send(self, item: OutboxItem) -> str:

@@ -267,7 +267,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"stopped: {s.summary()}", file=sys.stderr)
     if live is not None and live.dropped:
         print(f"live view: {live.dropped} updates dropped for slow browsers", file=sys.stderr)
-    return 0
+    from minority.serve_ranks import report_failures
+    return report_failures(servers)
 
 
 # --- sim --------------------------------------------------------------------------------
@@ -708,11 +709,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
             if args.duration and elapsed >= args.duration:
                 break
     finally:
-        recorder.close()
+        complete = recorder.close()
         session.close()
     print(f"\n{recorder.written} messages written to {out} "
           f"({recorder.writer.rejected} rejected as malformed, {recorder.dropped} dropped)",
           file=sys.stderr)
+    if not complete:
+        return fail("record", f"{out}: {recorder.writer.failure}; {recorder.writer.ending}; "
+                              f"{recorder.write_errors} messages not written")
     return 0
 
 

@@ -2,6 +2,8 @@
 two servers (or a server and an earlier run) would share, a message that comes after a run
 ended, chunks still queued when the server stops. Waits are on events and counts."""
 
+import subprocess
+import sys
 import threading
 import warnings
 
@@ -9,7 +11,7 @@ import pytest
 from conftest import make_chunk
 from minority.protocol import Event, EventKind, keys
 from minority.protocol.log import read_log
-from minority.protocol.session import LOSSLESS_QOS, put
+from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.runs import claim_frames_dir, open_writer
 from test_loopback import TIMEOUT_S, wait_until
@@ -176,3 +178,26 @@ def test_chunks_still_queued_at_a_stop_are_logged_and_counted(server, client_fac
     assert s["chunks"] + s["inbox_dropped"] + s["queued_at_stop"] + s["lost_in_transit"] == 10
     logged = [r for r in read_log(tmp_path / "run.mcap") if r.topic.endswith("/chunk")]
     assert len(logged) == s["chunks"] + s["queued_at_stop"]
+
+
+def test_serve_exit_when_done_exits_1_when_a_rank_was_killed(endpoint, tmp_path):
+    """`minority serve --exit-when-done`, a rank that sends and then vanishes (its session
+    closed without a done event, as a SIGKILL leaves it): the server exits 1 naming it."""
+    spec().save(tmp_path / "spec.json")
+    server = subprocess.Popen(
+        [sys.executable, "-m", "minority", "serve", "--spec", str(tmp_path / "spec.json"),
+         "--out", str(tmp_path / "out"), "--listen", endpoint, "--exit-when-done"],
+        stderr=subprocess.PIPE, text=True)
+    try:
+        rank = open_session(NetworkOptions(connect=[endpoint], connect_timeout_s=30),
+                            Role.CLIENT)
+        assert wait_until(lambda: len(list(rank.get(keys.spec(RUN), timeout=1))) > 0)
+        token = rank.liveliness().declare_token(keys.rank_token(RUN, 0))
+        send_step(rank, 0, ranks=1)
+        del token
+        rank.close()  # killed: no done event
+        _, err = server.communicate(timeout=60)
+    finally:
+        server.kill()
+    assert server.returncode == 1, err
+    assert "rank(s) 0 vanished without their done event" in err

@@ -120,8 +120,11 @@ def warm_up() -> None:
     from minority.protocol.spec import Camera, View
 
     view = View("warm-up", Camera((0.0, -1.0, 0.0), (0.0, 0.0, 0.0)), 8, 8)
-    scene = prepare(np.zeros((2, 3), np.float32), 0.1)
-    for values in (np.zeros((2, 3), np.float32), np.zeros(2, np.float32)):  # as chunks carry
+    positions = np.random.default_rng(0).random((16, 3), dtype=np.float32)
+    # 4 bricks: the k-d split kernels run too (one brick skips them; a step large enough to
+    # need more compiled them on arrival: 5.8 s at the first 100k step of a fresh machine)
+    scene = prepare(positions, 0.1, n_bricks=4)
+    for values in (positions, positions[:, 0].copy()):  # [n, 3] and [n], as chunks carry
         render(scene, values, view, shadows=True)
 
 

@@ -216,7 +216,7 @@ class RenderServer:
             frames_dir = unclaimed_frames_dir(o.out_dir, self.run)
             self._error(f"cannot make the frame directory {frames_dir}: {exc}")
         name = frames_dir.name
-        writer = None
+        writer, log_error = None, ""
         if o.record is not None:
             try:
                 writer = open_writer(o.record, self.run, name)
@@ -225,8 +225,8 @@ class RenderServer:
                     if frames_dir.is_dir():
                         frames_dir.rmdir()
                     raise
-                self._error(f"cannot open a log next to {o.record}: {exc}; this run is not "
-                            "logged")
+                log_error = f"cannot open a log next to {o.record}: {exc}"
+                self._error(f"{log_error}; this run is not logged")
             if writer is not None and writer.path != o.record:
                 print(f"minority serve: run {self.run}: {o.record} exists, this run logs to "
                       f"{writer.path}", file=sys.stderr, flush=True)
@@ -234,6 +234,7 @@ class RenderServer:
         inst = self._run = RunInstance(
             self._seq, name, frames_dir, writer,
             StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes))
+        inst.log_error = log_error
         inst.inbox_dropped_before = self._inbox.dropped if hasattr(self, "_inbox") else 0
         if self._mpi is not None:  # the other ranks log their chunks next to this log
             self._mpi.open_instance(writer.path if writer is not None else None)
@@ -588,6 +589,8 @@ class RenderServer:
                        + " vanished without their done event")
         if inst.writer is not None and inst.writer.failure:
             out.append(f"its log {inst.writer.path} ends early ({inst.writer.failure})")
+        if inst.log_error:
+            out.append(f"it was not logged ({inst.log_error})")
         return out
 
     def failures(self) -> list[str]:

@@ -93,6 +93,7 @@ class RunInstance:
         self.ranks_lost: set[int] = set()  # token vanished without a done event (killed)
         self.inbox_dropped_before = 0  # the server's inbox drops when this run opened
         self.queued_at_stop = 0  # chunks received but still queued when the server stopped
+        self.log_error = ""  # why this run has no log although one was asked for
         self.drained = False  # every rank gone and every pending step released
         self.finished = threading.Event()
 

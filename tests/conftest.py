@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import socket
+import subprocess
 import tempfile
 import zlib
 
@@ -155,3 +157,45 @@ TINY_SPEC = {
                                    "parallel_scale_m": 0.1},
          "width": 64, "height": 48, "field": "displacement", "range": [0.0, 0.1],
          "decimate": 2, "schedule": [{"every_steps": 40}]}]}
+
+
+DISK_BYTES = 2 << 20  # the `disk` fixture's tmpfs
+PAGE_BYTES = 4096
+
+
+@pytest.fixture
+def disk(tmp_path):
+    """A 2 MiB tmpfs mounted on a fresh directory (needs root: skipped otherwise)."""
+    where = tmp_path / "disk"
+    where.mkdir()
+    try:
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={DISK_BYTES}", "tmpfs",
+                               str(where)], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"cannot mount a tmpfs to fill: {exc}")
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs to fill (root needed): {done.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        # -l: a test that failed may still hold a file there open
+        subprocess.run(["umount", "-l", str(where)], check=True, timeout=30)
+
+
+def fill(where, leave: int = 0) -> None:
+    """Write a filler file until the disk is full, or until about `leave` bytes are free."""
+    fd = os.open(where / "filler", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    try:
+        block = b"\0" * (64 << 10)
+        while os.statvfs(where).f_bavail * os.statvfs(where).f_frsize > leave + len(block):
+            os.write(fd, block)
+        if leave:
+            return
+        while True:
+            try:
+                os.write(fd, block[:PAGE_BYTES])
+            except OSError as exc:
+                assert exc.errno == errno.ENOSPC
+                return
+    finally:
+        os.close(fd)

@@ -4,57 +4,15 @@ the summary), says so, and never counts a message that is not in the file."""
 
 import errno
 import os
-import subprocess
 import warnings
 
 import pytest
-from conftest import make_chunk
+from conftest import PAGE_BYTES, fill, make_chunk
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType
 from minority.protocol import keys, logfile
 from minority.protocol.log import LogWriter, read_log
 from minority.protocol.repair import LogState, scan
-
-DISK_BYTES = 2 << 20
-PAGE_BYTES = 4096
-
-
-@pytest.fixture
-def disk(tmp_path):
-    """A 2 MiB tmpfs mounted on a fresh directory (needs root: skipped otherwise)."""
-    where = tmp_path / "disk"
-    where.mkdir()
-    try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={DISK_BYTES}", "tmpfs",
-                               str(where)], capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        pytest.skip(f"cannot mount a tmpfs to fill: {exc}")
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs to fill (root needed): {done.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        # -l: a test that failed may still hold a file there open
-        subprocess.run(["umount", "-l", str(where)], check=True, timeout=30)
-
-
-def fill(where, leave: int = 0) -> None:
-    """Write a filler file until the disk is full, or until about `leave` bytes are free."""
-    fd = os.open(where / "filler", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
-    try:
-        block = b"\0" * (64 << 10)
-        while os.statvfs(where).f_bavail * os.statvfs(where).f_frsize > leave + len(block):
-            os.write(fd, block)
-        if leave:
-            return
-        while True:
-            try:
-                os.write(fd, block[:PAGE_BYTES])
-            except OSError as exc:
-                assert exc.errno == errno.ENOSPC
-                return
-    finally:
-        os.close(fd)
 
 
 def chunk_payload(step: int, n: int = 200) -> bytes:

@@ -4,19 +4,25 @@ server's password, names that would escape --out, a server restart (a killed one
 tests/test_serve_runs.py). Afterwards every log opens with mcap's own
 reader, every run has each scheduled frame or a counted reason (an incomplete step, with the
 ranks it lacked), traced memory is back at its baseline, and nothing was written outside
---out. Loopback only; waits are on messages and events, never on sleep."""
+--out. Then what the daemon must not lose: two servers on one --out, a flood of idle
+connections, a squatter on an endpoint without a password file, killed ranks, a full disk;
+afterwards every log opens with mcap's reader and every chunk sent is in exactly one count.
+Loopback only; waits are on messages and events, never on sleep."""
 
 import json
 import random
+import socket
 import tracemalloc
 
 import pytest
 import zenoh
-from conftest import make_chunk
+from conftest import fill, free_port, make_chunk
 from mcap.reader import make_reader
 from minority.protocol import Event, EventKind, Spec, Timing, keys
+from minority.protocol.auth import CredentialsError
 from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from minority.render_server.daemon import RenderServer, ServerOptions
+from test_auth import Squatter
 from test_loopback import TIMEOUT_S, wait_until
 from test_render_daemon import EveryStep, spec
 
@@ -30,18 +36,21 @@ def spec_for(run: str) -> Spec:
     return Spec.from_dict({**spec().to_dict(), "run": run})
 
 
-def one_run(sim, run: str, rng: random.Random, kill_rank: bool) -> None:
-    """A 2-rank run: its tokens, its chunks (rank 1 dies before its last one when
-    `kill_rank`), fuzzed chunks in between, done events with the counts sent."""
+def one_run(sim, run: str, rng: random.Random | None, kill_rank: bool, n: int = 40) -> int:
+    """A 2-rank run: its tokens, its chunks of n particles (rank 1 dies before its last one
+    when `kill_rank`), fuzzed chunks in between (none without `rng`), done events with the
+    counts sent. Returns the chunks the ranks sent."""
     tokens = [sim.liveliness().declare_token(keys.rank_token(run, r)) for r in range(RANKS)]
     sent = [0] * RANKS
     for step in STEPS:
         for rank in range(RANKS):
             if kill_rank and rank == 1 and step == STEPS[-1]:
                 continue
-            chunk = make_chunk(n=40, step=step, rank=rank, ranks=RANKS, seed=step + rank, run=run)
+            chunk = make_chunk(n=n, step=step, rank=rank, ranks=RANKS, seed=step + rank, run=run)
             put(sim, keys.chunk(run, step, rank), chunk.encode(), LOSSLESS_QOS)
             sent[rank] += 1
+        if rng is None:
+            continue
         payload = bytearray(make_chunk(n=10, step=step, rank=0, ranks=RANKS, run=run).encode())
         for _ in range(3):
             payload[rng.randrange(len(payload))] ^= 1 << rng.randrange(8)
@@ -53,6 +62,7 @@ def one_run(sim, run: str, rng: random.Random, kill_rank: bool) -> None:
         put(sim, keys.event(run), Event(run, EventKind.RANK_DONE, rank, "done",
                                         {"sent": sent[rank]}).encode(), LOSSLESS_QOS)
         tokens[rank].undeclare()
+    return sum(sent)
 
 
 def check_log(path, kill_rank: bool) -> None:
@@ -122,6 +132,91 @@ def test_one_server_many_runs_hostile_peers(server, client_factory, endpoint, tm
         check_log(out / ("seq.mcap" if k == 0 else f"seq.{k}.mcap"), kill_rank=(k % 7 == 3))
     outside = {p.name for p in tmp_path.iterdir()} - {"out", "wrong"}
     assert not outside and all(p.resolve().is_relative_to(out) for p in out.rglob("*"))
+
+
+def served(session, run: str, out, record, timeout_s: float = 2.0) -> RenderServer:
+    d = RenderServer(session, ServerOptions(spec_for(run), out, record, timeout_s=timeout_s))
+    d._latest = _every_step()
+    return d
+
+
+def accounted(d: RenderServer, sent: int) -> None:
+    """Every chunk the ranks sent is in exactly one of the run's counts."""
+    s = d.summary()
+    assert s["chunks"] + s["inbox_dropped"] + s["queued_at_stop"] + s["lost_in_transit"] \
+        == sent, s
+
+
+def every_log_opens(where) -> int:
+    """Each MCAP file under `where` opens with mcap's reader, summary included; the count."""
+    logs = sorted(where.rglob("*.mcap"))
+    for path in logs:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            assert reader.get_summary() is not None, path
+            sum(1 for _ in reader.iter_messages())
+    return len(logs)
+
+
+def test_what_the_daemon_must_not_lose(server, client_factory, endpoint, tmp_path, disk):
+    out = tmp_path / "out"
+    sim = client_factory()
+
+    # two servers on one --out, without a log: each its own folder, every frame kept
+    twins = [served(server, "twin", out, None) for _ in range(2)]
+    sent = one_run(sim, "twin", None, kill_rank=False)
+    assert all(d.finished.wait(TIMEOUT_S) for d in twins)
+    for d in twins:
+        d.close()
+        accounted(d, sent)
+    assert {d.current.frames_dir.name for d in twins} == {"twin", "twin.1"}
+    for d in twins:
+        assert len(list((d.current.frames_dir / "side").iterdir())) == len(STEPS)
+
+    # a flood of idle connections while a rank is killed: the client still gets in
+    host, port = endpoint.split("/")[1].rsplit(":", 1)
+    flood = [socket.create_connection((host, int(port)), timeout=5) for _ in range(150)]
+    try:
+        late = open_session(NetworkOptions(connect=[endpoint], connect_timeout_s=5.0),
+                            Role.CLIENT)
+        d = served(server, "flood", out, out / "flood.mcap")
+        sent = one_run(late, "flood", None, kill_rank=True)
+        assert d.finished.wait(TIMEOUT_S)
+        d.close()
+        late.close()
+    finally:
+        for sock in flood:
+            sock.close()
+    assert d.summary()["ranks_lost"] == [1] and d.failures()
+    accounted(d, sent)
+
+    # a squatter on an endpoint without a password file: refused before anything is sent
+    squat = f"tcp/127.0.0.1:{free_port()}"
+    squatter = Squatter(squat)
+    try:
+        with pytest.raises(CredentialsError):
+            open_session(NetworkOptions(connect=[squat]), Role.CLIENT)
+        assert squatter.heard == [] and squatter.peers() == []
+    finally:
+        squatter.close()
+
+    # a full disk under a server's --out: runs go on, logs end cleanly, nothing uncounted
+    fill(disk, leave=48 << 10)
+    d = served(server, "full", disk / "out", disk / "out" / "full.mcap")
+    failed = []
+    try:
+        for k in range(6):
+            sent = one_run(sim, "full", None, kill_rank=(k == 2), n=400)
+            assert wait_until(lambda k=k: d.finished.is_set()
+                              and d.current.name == ("full" if k == 0 else f"full.{k}"))
+            accounted(d, sent)
+            failed += d.failures()
+    finally:
+        d.close()
+    assert any("ends early" in f and "ENOSPC" in f for f in failed), failed
+    assert any("was not logged" in f for f in failed), failed  # a run opened on the full disk
+    assert every_log_opens(disk) >= 1
+    assert every_log_opens(out) == 1  # flood.mcap
 
 
 def rejected_total(out) -> int:

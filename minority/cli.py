@@ -196,6 +196,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     from minority.protocol.session import Role, open_session, options_from_args, shm_pool_for
     from minority.render_server.daemon import RenderServer, ServerOptions
+    from minority.serve_ranks import end_line, report_failures
 
     runs = [s.run for s in specs]
     if len(set(runs)) < len(runs):
@@ -255,7 +256,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     try:
         while not stop.wait(0.2):
             if args.exit_when_done and all(s.finished.is_set() for s in servers):
-                print("every rank is done and the last step rendered", file=sys.stderr)
+                print(end_line(servers), file=sys.stderr)
                 break
     finally:
         for s in servers:
@@ -267,7 +268,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"stopped: {s.summary()}", file=sys.stderr)
     if live is not None and live.dropped:
         print(f"live view: {live.dropped} updates dropped for slow browsers", file=sys.stderr)
-    from minority.serve_ranks import report_failures
     return report_failures(servers)
 
 

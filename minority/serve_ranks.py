@@ -17,6 +17,13 @@ import traceback
 from minority.cliargs import BAD_INPUT, FAILED, parent_made
 
 
+def end_line(servers) -> str:
+    """What `serve --exit-when-done` says when every run has ended."""
+    if any(server.failures() for server in servers):
+        return "every run has ended, not all as it should (below)"
+    return "every rank is done and the last step rendered"
+
+
 def report_failures(servers) -> int:
     """Say on stderr what went wrong in each server's last run (a rank killed before its
     done event, a log cut short: RenderServer.failures); FAILED if anything did, else 0."""
@@ -169,7 +176,7 @@ def _server(args, spec, ctl, draw, session) -> int:
           file=sys.stderr, flush=True)
     while not stop.wait(0.2) and not coordinator.aborted.is_set():
         if args.exit_when_done and server.finished.is_set():
-            print("every rank is done and the last step rendered", file=sys.stderr)
+            print(end_line([server]), file=sys.stderr)
             break
     if coordinator.aborted.is_set():
         print(f"minority serve: error: {coordinator.failure}; log closed: {server.summary()}",

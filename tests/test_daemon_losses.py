@@ -201,3 +201,4 @@ def test_serve_exit_when_done_exits_1_when_a_rank_was_killed(endpoint, tmp_path)
         server.kill()
     assert server.returncode == 1, err
     assert "rank(s) 0 vanished without their done event" in err
+    assert "every run has ended, not all as it should" in err

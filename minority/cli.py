@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from minority.cliargs import BAD_INPUT, FAILED, HelpFormatter, add_out, command, fail, missing, parent_made
+from minority.signals import stop_on_signals
 
 DEFAULT_REBALANCE_EVERY = 100  # steps; sim.decomp.DEFAULT_REBALANCE_EVERY (not imported here)
 # packages whose numba kernels are cached on disk (cache=True): their stale caches are dropped
@@ -28,41 +29,6 @@ NO_MPI = ("no MPI library: install the mpich wheel (pip install 'minority[mpi]',
 def _add_network(p: argparse.ArgumentParser) -> None:
     from minority.protocol.session import add_network_args
     add_network_args(p)
-
-
-class SignalStop:
-    """Set by SIGINT or SIGTERM: a clean stop (logs closed, sessions closed); `wait` and
-    `is_set` as a threading.Event's. Not an Event: a signal handler runs in the main thread
-    between two bytecodes, possibly inside Event.wait while it holds the event's lock, and
-    Event.set would then wait for that lock forever (`serve --ranks 2` hung so on Ctrl-C)."""
-
-    POLL_S = 0.05
-
-    def __init__(self) -> None:
-        self._set = False
-
-    def set(self) -> None:
-        self._set = True
-
-    def is_set(self) -> bool:
-        return self._set
-
-    def wait(self, timeout: float | None = None) -> bool:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._set:
-            left = self.POLL_S if deadline is None else min(self.POLL_S,
-                                                             deadline - time.monotonic())
-            if left <= 0:
-                break
-            time.sleep(left)
-        return self._set
-
-
-def _stop_on_signals() -> SignalStop:
-    stop = SignalStop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
 
 
 def _open_peer(opts, role, command: str, wait_s: float):
@@ -231,7 +197,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             live.close()
         return FAILED
     servers = []
-    stop = _stop_on_signals()  # before the "serving" lines: a stop from then on is clean
+    stop = stop_on_signals()  # before the "serving" lines: a stop from then on is clean
     try:
         args.out.mkdir(parents=True, exist_ok=True)
         for spec in specs:
@@ -554,7 +520,7 @@ def _replay_publish(args: argparse.Namespace) -> int:
     session = _open_peer(opts, Role.SERVER if args.listen else Role.CLIENT, "replay", args.wait)
     if session is None:
         return FAILED
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     try:
         s = publish(args.log, session, args.rate, args.run, args.wait, stop)
     except (RunLogError, ProtocolError) as exc:
@@ -697,7 +663,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     except OSError as exc:
         session.close()
         return fail("record", f"cannot write {args.out}: {exc}")
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     print(f"recording minority/{args.run}/** to {out} (Ctrl-C to stop)", file=sys.stderr)
     start = time.monotonic()
     try:

@@ -137,9 +137,9 @@ def _worker(args, spec, ctl, draw, session) -> int:
 
 
 def _server(args, spec, ctl, draw, session) -> int:
-    from minority.cli import _stop_on_signals
     from minority.render_server.daemon import RenderServer, ServerOptions
     from minority.render_server.serve_mpi import Coordinator
+    from minority.signals import stop_on_signals
 
     live = None
     if args.http is not None:
@@ -152,7 +152,7 @@ def _server(args, spec, ctl, draw, session) -> int:
             ctl.Abort(BAD_INPUT)
         print(f"live view: {live.url}", file=sys.stderr, flush=True)
     coordinator = Coordinator(ctl, draw, spec.run, args.max_sim_ranks, args.rank_timeout)
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     ctl.Barrier()
     try:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -85,7 +85,7 @@ def test_a_stop_signal_ends_a_wait_in_the_main_thread():
     import signal
     import threading
 
-    from minority.cli import SignalStop
+    from minority.signals import SignalStop
 
     stop = SignalStop()
     assert stop.wait(0.01) is False

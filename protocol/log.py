@@ -184,7 +184,10 @@ class LogWriter:
         if parsed is None or parsed.topic not in _BY_TOPIC:
             raise ProtocolError(f"key {key!r:.120} is not a minority message key")
         cls = _BY_TOPIC[parsed.topic]
-        if type(message) is not cls:
+        # The payload's stamp is the message's sent time: a decoded form given without it
+        # (a spec loaded from a file, sent_ns 0, whose payload was stamped at publish) is
+        # decoded again from the payload, so publish_time is never 0 for a stamped payload.
+        if type(message) is not cls or message.sent_ns != _stamp(payload):
             message = decode_as(payload, cls)
         if not 0 <= message.sent_ns <= MAX_TIME_NS:  # decoders refuse these; never trust it
             raise ProtocolError(f"sent time {message.sent_ns} ns is outside [0, {MAX_TIME_NS}]")
@@ -198,9 +201,7 @@ class LogWriter:
         return parsed.log_topic, schema, JSON_ENCODING, data, message.sent_ns, meta
 
     def _reject(self, key: str, payload: bytes, reason: str, log_ns: int) -> str:
-        sent_ns = 0
-        if len(payload) >= PREFIX_SIZE:
-            sent_ns = max(0, struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0])
+        sent_ns = max(0, _stamp(payload))
         record = Rejected(str(key)[:1024], reason, len(payload),
                           base64.b64encode(payload).decode("ascii"))
         with self._lock:
@@ -374,6 +375,13 @@ def _describe(exc: BaseException) -> str:
             text = f"{text}: {exc.filename}"
         return f"{errno.errorcode[exc.errno]}: {text}"
     return f"{type(exc).__name__}: {exc}"
+
+
+def _stamp(payload) -> int:
+    """The sent time (ns) in a payload's prefix; 0 when it is too short to hold one."""
+    if len(payload) < PREFIX_SIZE:
+        return 0
+    return struct.unpack_from("<q", payload, SENT_NS_OFFSET)[0]
 
 
 def default_key(message) -> str:

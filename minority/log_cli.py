@@ -1,4 +1,4 @@
-"""`minority log ...`: argument parsing of the MCAP log tools (check, repair)."""
+"""`minority log ...`: argument parsing of the MCAP log tools (check, repair, export)."""
 
 from __future__ import annotations
 
@@ -83,6 +83,37 @@ def _cmd_repair(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from minority.protocol.errors import ProtocolError
+    from minority.protocol.foxglove import export_foxglove
+
+    if not _readable(args.log, "export"):
+        return 2
+    if args.out.exists() and not args.force:
+        print(f"minority log export: error: {args.out} exists (--force replaces it)",
+              file=sys.stderr)
+        return 2
+    if args.out.exists() and args.out.samefile(args.log):
+        print(f"minority log export: error: {args.out} is the log itself", file=sys.stderr)
+        return 2
+    try:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        result = export_foxglove(args.log, args.out, args.run)
+    except ProtocolError as exc:
+        print(f"minority log export: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"minority log export: error: cannot write {args.out}: {exc}", file=sys.stderr)
+        return 1
+    copied = ", ".join(f"{n} {topic}" for topic, n in result.copied.items()) or "no records"
+    partial = f" ({result.partial_steps} without every rank's chunk)" if result.partial_steps else ""
+    skipped = f"; {result.skipped} rejected payloads left out" if result.skipped else ""
+    print(f"{args.log}: run {result.run}: {result.steps} point clouds{partial} with "
+          f"{result.points:,} particles on /particles, {result.scenes} scene updates on /scene, "
+          f"{copied}{skipped} -> {args.out}")
+    return 0
+
+
 def add_parser(sub) -> None:
     """Add `log` (with `check` and `repair`) to the subparsers `sub` of the minority command."""
     p = command(sub, "log", help="check or repair MCAP logs (e.g. of a killed server)",
@@ -121,3 +152,25 @@ def add_parser(sub) -> None:
                "is created", metavar="OUT.mcap")
     q.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     q.set_defaults(func=_cmd_repair)
+
+    q = command(lsub, "export", help="write a copy of a run that Foxglove shows whole",
+                        description="Write one run of IN.mcap to OUT.mcap for Foxglove (or "
+                                    "Lichtblick): its particles as foxglove.PointCloud on "
+                                    "/particles (one per step: x, y, z, every field as a "
+                                    "colour channel, particle ids), its regions of interest "
+                                    "and camera frusta as foxglove.SceneUpdate on /scene, and "
+                                    "its frames (/frame/VIEW), /timing, /stats, /events and "
+                                    "/spec unchanged. deploy/foxglove/minority.json is a "
+                                    "layout for it. IN.mcap is not modified and stays the "
+                                    "source for replay. Exit status 0 when written, 2 on bad "
+                                    "input (no such file, not MCAP, several runs and no "
+                                    "--run, OUT.mcap exists), 1 when OUT.mcap cannot be "
+                                    "written.")
+    q.add_argument("log", type=Path, metavar="IN.mcap", help="MCAP log to export")
+    q.add_argument("--foxglove", action="store_true", required=True,
+                   help="the format to write (the one there is): Foxglove's schemas, JSON")
+    add_out(q, "the Foxglove file to write; its directory is created", metavar="OUT.mcap",
+            required=True)
+    q.add_argument("--run", help="the run to export (needed when IN.mcap holds several)")
+    q.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
+    q.set_defaults(func=_cmd_export)

@@ -45,6 +45,7 @@ _COPIED = {keys.Topic.TIMING: "/timing", keys.Topic.STATS: "/stats",
 _FLOAT32, _FLOAT64 = NUMERIC_TYPES.index("FLOAT32"), NUMERIC_TYPES.index("FLOAT64")
 _LINE_LIST = 2  # foxglove.LineType
 _DELETE_ALL = 1  # foxglove.SceneEntityDeletionType
+MAX_PENDING_STEPS = 8  # steps waiting for a rank's chunk before the oldest is written partial
 _REGION_RGBA = (1.0, 0.55, 0.1, 0.25)
 _CAMERA_RGBA = (0.2, 0.5, 1.0, 1.0)
 
@@ -73,13 +74,21 @@ class _StepAssembler:
         self._pending: dict[int, list[tuple[Chunk, int]]] = {}  # step -> (chunk, log_ns)
         self._cache: dict[int, dict[str, np.ndarray]] = {}  # rank -> context rows by column
 
-    def add(self, chunk: Chunk, log_ns: int) -> list[tuple[int, list[tuple[Chunk, int]]]]:
-        """Take a chunk; returns the steps now complete (every rank's chunk in)."""
+    def add(self, chunk: Chunk, log_ns: int
+            ) -> list[tuple[int, list[tuple[Chunk, int]], bool]]:
+        """Take a chunk; returns the steps to write now, each with whether it is partial:
+        a step once every rank's chunk is in, and the oldest waiting steps, partial, while
+        more than MAX_PENDING_STEPS wait (a rank that stopped sending: memory stays
+        bounded)."""
         chunks = self._pending.setdefault(chunk.step, [])
         chunks.append((chunk, log_ns))
-        if len({c.rank for c, _ in chunks}) < chunk.ranks:
-            return []
-        return [(chunk.step, self._pending.pop(chunk.step))]
+        ready = []
+        while len(self._pending) > MAX_PENDING_STEPS:
+            oldest = min(self._pending)
+            ready.append((oldest, self._pending.pop(oldest), True))
+        if chunk.step in self._pending and len({c.rank for c, _ in chunks}) >= chunk.ranks:
+            ready.append((chunk.step, self._pending.pop(chunk.step), False))
+        return ready
 
     def rest(self) -> list[tuple[int, list[tuple[Chunk, int]]]]:
         """The steps still waiting for a chunk, in step order (the log lacks some)."""
@@ -306,8 +315,8 @@ def _export(log: Path, f, run: str | None) -> ExportResult:
         if result is None:
             result, sink = ExportResult(chosen), _Out(f, chosen, log)
         if topic.kind == keys.Topic.CHUNK:
-            for _, step_chunks in steps.add(record.decode(), record.log_ns):
-                emit(step_chunks, False)
+            for _, step_chunks, partial in steps.add(record.decode(), record.log_ns):
+                emit(step_chunks, partial)
             continue
         if topic.kind == keys.Topic.SPEC:
             sink.write(SCENE_TOPIC, "foxglove.SceneUpdate",

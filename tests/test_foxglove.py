@@ -255,3 +255,22 @@ def test_the_shipped_layout_shows_what_the_export_writes(tmp_path):
         assert name in {"/timing": timing, "/stats": stats}[topic]["properties"], path
     placed = json.dumps(layout["layout"])
     assert all(f'"{panel}"' in placed for panel in panels)
+
+
+def test_a_rank_that_stops_sending_leaves_partial_steps_in_step_order(tmp_path):
+    """Rank 1 sends step 1 only: every later step waits for it, and the export writes the
+    oldest partial once more than MAX_PENDING_STEPS wait (memory stays bounded)."""
+    from minority.protocol.foxglove import MAX_PENDING_STEPS
+
+    with LogWriter(tmp_path / "a.mcap") as log:
+        log.write(make_chunk(n=5, step=1, rank=1, seed=99))
+        for step in range(1, MAX_PENDING_STEPS + 4):
+            log.write(make_chunk(n=5, step=step, rank=0, seed=step))
+    result = export_foxglove(tmp_path / "a.mcap", tmp_path / "b.mcap")
+    assert (result.steps, result.partial_steps) == (MAX_PENDING_STEPS + 3, MAX_PENDING_STEPS + 2)
+    clouds = [json.loads(m.data) for _, m in _messages(tmp_path / "b.mcap")[PARTICLES_TOPIC]]
+    assert [len(_points(c)["x"]) for c in clouds] == [10] + [5] * (MAX_PENDING_STEPS + 2)
+    expected = [make_chunk(n=5, step=s, rank=0, seed=s).positions[:, 0]
+                for s in range(2, MAX_PENDING_STEPS + 4)]
+    assert all(np.array_equal(_points(c)["x"], x) for c, x in zip(clouds[1:], expected,
+                                                                   strict=True))

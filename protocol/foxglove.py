@@ -30,7 +30,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
-from minority.protocol.logread import read_log
+from minority.protocol.logread import MCAP_MAGIC, read_log
 from minority.protocol.messages import POSITIONS, Chunk
 from minority.protocol.projection import camera_basis, half_extents
 from minority.protocol.schemas import FOXGLOVE_SCHEMAS, JSON_SCHEMAS, NUMERIC_TYPES
@@ -277,6 +277,9 @@ def export_foxglove(log: str | Path, out: str | Path, run: str | None = None) ->
     be left out when the log holds one run; ProtocolError names the runs otherwise, or an
     undecodable record. The output appears whole or not at all."""
     log, out = Path(log), Path(out)
+    with open(log, "rb") as f:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise ProtocolError(f"{log} is not an MCAP file (no MCAP magic at its start)")
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:

@@ -274,3 +274,11 @@ def test_a_rank_that_stops_sending_leaves_partial_steps_in_step_order(tmp_path):
                 for s in range(2, MAX_PENDING_STEPS + 4)]
     assert all(np.array_equal(_points(c)["x"], x) for c, x in zip(clouds[1:], expected,
                                                                    strict=True))
+
+
+def test_export_refuses_a_file_that_is_not_mcap(tmp_path, capsys):
+    (tmp_path / "notes.mcap").write_text("hello\n")
+    out = tmp_path / "out.mcap"
+    assert main(["log", "export", "--foxglove", str(tmp_path / "notes.mcap"), "-o",
+                 str(out)]) == 2
+    assert "is not an MCAP file" in capsys.readouterr().err and not out.exists()

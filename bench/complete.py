@@ -3,7 +3,7 @@
 recorded (no server; frames re-rendered from each record by the server's own code):
 
 * `context`: the spec's regions, with the particles outside them sent once and again when
-  they move more than the tolerance (today's default);
+  they move more than the tolerance (the default);
 * `regions`: the spec's regions only (`minority sim --no-context`; the baseline bytes);
 * `full`: every particle at every due step (the spec without regions nor occlusion
   culling; the reference frames).

@@ -9,8 +9,8 @@ below `max_sim_ranks`), decodes and keeps them. A rank k > 0 writes its chunks t
 shard (protocol.shards: `run.render{k}.mcap`, opened and closed with each run) and reports
 each chunk to rank 0 over MPI: step, sim rank, counts, bytes, times and field layout, never
 its particles. Rank 0 feeds its assembler a row-less stub per chunk (messages.Chunk with the
-same metadata and zero rows), so steps complete, time out, and settle dead sim ranks as
-today. For each released step (in release order) rank 0 tells every rank which sim ranks'
+same metadata and zero rows), so steps complete, time out, and settle dead sim ranks as in
+one process. For each released step (in release order) rank 0 tells every rank which sim ranks'
 chunks it holds; each rank builds its share of the step (the fresh rows of its chunks),
 applies its chunks' context rows to its own particle cache and completes the share from it
 (the one-process server's cache, split by sim rank). When rank 0's render thread takes a

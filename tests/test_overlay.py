@@ -1,6 +1,6 @@
 """Annotations on frames (render_server.overlay, through render_server.frames.render_views):
 the colorbar follows the colormap, the time text follows the step, the floor and walls are
-drawn only where no particle is, `annotations: false` is today's image, a bad value is
+drawn only where no particle is, `annotations: false` gives the image without annotations, a bad value is
 refused by path, and a view's overlay is composed once."""
 
 import json

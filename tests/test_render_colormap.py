@@ -58,7 +58,7 @@ def test_unknown_builtin_names_the_known_ones():
 
 def test_shipped_tables_are_what_vtk_and_matplotlib_give():
     """render_server/colormap_tables.npz is `python -m minority.render_server.colormap`'s
-    output today: the same control points, NaN colours, spaces and lookup tables, exactly."""
+    output: the same control points, NaN colours, spaces and lookup tables, exactly."""
     from minority.render_server.colormap import BUILTIN, TABLES, tables_of
 
     fresh = tables_of({name: make() for name, make in BUILTIN.items()})

@@ -210,7 +210,7 @@ def test_dataset_npz_dataset_keeps_positions_and_friction(dataset, tmp_path):
     meta = load_metadata(dataset)
     assert main(["oracle", "export-npz", str(dataset), "-o", str(tmp_path / "npz")]) == 0
     theirs = json.loads((tmp_path / "npz" / "metadata.json").read_text())
-    assert theirs["dim"] == 3 and theirs["dt"] == DT and theirs["sequence_length"] == 15
+    assert theirs["dim"] == 3 and theirs["dt"] == DT and theirs["sequence_length"] == 16
     assert theirs["default_connectivity_radius"] == meta["connectivity_radius_m"]
     assert theirs["bounds"] == meta["bounds_m"] and theirs["acc_std"] == meta["acc_std"]
     assert theirs["material_feature_len"] == 1 and theirs["nnode_in"] == 38
@@ -297,7 +297,7 @@ def test_npz_metadata_the_model_cannot_use_is_refused(tmp_path, meta, match):
 
 @pytest.mark.parametrize("material", ["deg", "none"])
 def test_the_friction_angle_exported_in_degrees_or_not_at_all(dataset, tmp_path, material):
-    theirs = export_npz(dataset, tmp_path / "npz", material=material)
+    theirs = export_npz(dataset, tmp_path / "npz", material=material)["datasets"]["."]
     item = load_npz(tmp_path / "npz" / "train.npz")["s0"]
     if material == "deg":
         assert len(item) == 3 and item[2] == 10.0 and theirs["nnode_in"] == 38
@@ -349,3 +349,224 @@ def test_training_a_few_steps_on_the_dem_examples_runs(tmp_path, capsys):
           TrainConfig(steps=3, batch=2, val_every=3, val_frames=3, ckpt_every=3), device="cpu")
     _, ckpt = load_checkpoint(tmp_path / "m.pt")
     assert ckpt["step"] == 3 and ckpt["stats"]["frame_interval_s"] == meta["frame_interval_s"]
+
+
+# --- what geoelements/gns does with an npz dataset (the expected layout, from their source) ---
+
+GNS_INPUT_SEQUENCE_LENGTH = 6  # gns/train.py: INPUT_SEQUENCE_LENGTH (config data.input_sequence_length)
+
+
+def gns_read_metadata(path, purpose):
+    """gns/reading_utils.py read_metadata(data_path, purpose): the file's [purpose] section
+    when it is split by purpose ("train", "rollout"), else all of it."""
+    raw = json.loads((path / "metadata.json").read_text())
+    return raw[purpose] if isinstance(raw.get(purpose), dict) else raw
+
+
+def gns_rollout_lengths(metadata, positions):
+    """gns/train.py predict() and rollout(): nsteps = metadata["sequence_length"] - 6 (the
+    key read with [], so it must be there), or the trajectory's own frame count - 6 where it
+    is None; rollout() predicts nsteps frames and subtracts ground_truth = positions[6:].
+    Returns (predicted, true) frame counts: their rollout runs only when they are equal."""
+    seq = metadata["sequence_length"]
+    nsteps = (positions.shape[0] if seq is None else seq) - GNS_INPUT_SEQUENCE_LENGTH
+    return nsteps, positions[GNS_INPUT_SEQUENCE_LENGTH:].shape[0]
+
+
+def gns_wall_features(metadata, x):
+    """gns/learned_simulator.py LearnedSimulator._encoder_preprocessor, with boundaries =
+    metadata["bounds"] (gns/train.py _get_simulator): distances of x [n, dim] to the lower
+    and upper bounds over default_connectivity_radius, clamped to [-1, 1]
+    (boundary_clamp_limit 1.0). Returns [n, 2 dim]."""
+    b = np.asarray(metadata["bounds"], np.float64)
+    r = metadata["default_connectivity_radius"]
+    return np.clip(np.concatenate([x - b[:, 0], b[:, 1] - x], axis=1) / r, -1.0, 1.0)
+
+
+def _move(path, shift, bounds):
+    """Shift a run's particles by shift (m) and give it bounds (m)."""
+    with h5py.File(path, "a") as f:
+        f["positions"][...] = f["positions"][...] + np.asarray(shift, np.float32)
+        f.attrs["bounds_m"] = np.asarray(bounds, np.float64)
+
+
+NARROW = [[0.0, 1.0], [0.0, 0.06], [0.0, 0.5]]  # a channel as wide as the block, m
+RAISED = [[0.0, 1.0], [0.0, 0.1], [0.1, 0.6]]  # a floor at z = 0.1 m
+
+
+@pytest.fixture
+def domains(tmp_path):
+    """A dataset of three domains: the wide channel (two train scenes and a valid one, 16
+    frames), a narrow one (test, 20 frames) and a raised floor (train, 16 frames, the block
+    on the floor)."""
+    runs = tmp_path / "domain_runs"
+    for split, name, phi, frames in (("train", "a_wide", 10.0, 16), ("train", "b_wide", 20.0, 16),
+                                     ("train", "c_raised", 25.0, 16), ("valid", "d_wide", 30.0, 16),
+                                     ("test", "e_narrow", 40.0, 20)):
+        (runs / split).mkdir(parents=True, exist_ok=True)
+        pos = slide(runs / split / f"{name}.h5", phi, frames=frames)
+        if name == "c_raised":  # the block set down half a spacing above the raised floor
+            _move(runs / split / f"{name}.h5", [0, 0, 0.1 + S / 2 - pos[0, :, 2].min()], RAISED)
+    _move(runs / "test" / "e_narrow.h5", [0, 0, 0], NARROW)
+    build_from_runs([runs], tmp_path / "domain_ds")
+    return tmp_path / "domain_ds"
+
+
+def test_gns_rolls_out_every_trajectory_of_the_export(dataset, domains, tmp_path):
+    """The rollout of geoelements/gns compares sequence_length - 6 predicted frames with
+    positions[6:]: sequence_length is the frame count (null where the lengths differ)."""
+    for ds, out in ((dataset, tmp_path / "one"), (domains, tmp_path / "three")):
+        export_npz(ds, out)
+        for meta_path in sorted(out.rglob("metadata.json")):
+            d = meta_path.parent
+            meta = gns_read_metadata(d, "rollout")
+            assert "sequence_length" in meta
+            for split in ("valid", "test"):
+                if (d / f"{split}.npz").is_file():
+                    for name, (pos, *_) in load_npz(d / f"{split}.npz").items():
+                        predicted, true = gns_rollout_lengths(meta, pos)
+                        assert predicted == true > 0, (d, name)
+    assert json.loads((tmp_path / "one" / "metadata.json").read_text())["sequence_length"] == 16
+
+
+def test_an_export_of_trajectories_of_two_lengths_says_null(tmp_path):
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    for i, frames in enumerate((16, 20, 18)):
+        slide(runs / f"s{i}.h5", 20.0 + i, frames=frames)
+    build_from_runs([runs], tmp_path / "ds", valid=1)
+    theirs = export_npz(tmp_path / "ds", tmp_path / "npz")["datasets"]["."]
+    assert "sequence_length" in theirs and theirs["sequence_length"] is None
+    meta = gns_read_metadata(tmp_path / "npz", "rollout")
+    for pos, *_ in load_npz(tmp_path / "npz" / "valid.npz").values():
+        assert gns_rollout_lengths(meta, pos) == (12, 12)
+
+
+def test_gns_sees_the_walls_of_every_trajectory(domains, tmp_path):
+    """gns has one `bounds` per dataset: each domain is a dataset of its own, and the wall
+    features gns computes from it are those of the scene's own walls (a narrow channel keeps
+    its side wall, a raised floor its floor)."""
+    theirs = export_npz(domains, tmp_path / "npz")
+    assert sorted(theirs["datasets"]) == ["domain_00", "domain_01", "domain_02"]
+    meta = load_metadata(domains)
+    own = {sc["name"]: (sc["split"], np.asarray(load_bounds(domains, sc["split"], sc["name"])))
+           for sc in meta["scenes"]}
+    seen = {}
+    for d in sorted((tmp_path / "npz").iterdir()):
+        m = gns_read_metadata(d, "train")
+        for split in ("train", "valid", "test"):
+            if not (d / f"{split}.npz").is_file():
+                continue
+            for name, (pos, *_) in load_npz(d / f"{split}.npz").items():
+                assert own[name][0] == split
+                expected = gns_wall_features({**m, "bounds": own[name][1].tolist()}, pos[0])
+                np.testing.assert_array_equal(gns_wall_features(m, pos[0]), expected)
+                seen[name] = (d.name, gns_wall_features(m, pos[0]))
+    assert sorted(seen) == ["a_wide", "b_wide", "c_raised", "d_wide", "e_narrow"]
+    assert {seen[n][0] for n in ("a_wide", "b_wide", "d_wide")} == {"domain_00"}
+    assert seen["e_narrow"][1][:, 4].min() < 1.0  # the side wall y = 0.06 m is within reach
+    assert seen["c_raised"][1][:, 2].min() < 1.0  # so is the floor z = 0.1 m
+    assert main(["oracle", "dataset", "--from-npz", str(tmp_path / "npz"),
+                 "-o", str(tmp_path / "back")]) == 0
+    for split in ("train", "valid", "test"):
+        for a, b in zip(load_split(domains, split), load_split(tmp_path / "back", split), strict=True):
+            assert a.name == b.name
+            np.testing.assert_array_equal(a.positions, b.positions)
+            np.testing.assert_array_equal(a.bounds_m, b.bounds_m)
+
+
+def test_an_export_over_an_earlier_one_of_another_layout_is_refused(dataset, domains, tmp_path):
+    """Files an export would not replace would be read by gns with the new ones."""
+    export_npz(dataset, tmp_path / "npz")
+    with pytest.raises(NpzError, match=r"metadata.json, .*train.npz.* of an earlier export"):
+        export_npz(domains, tmp_path / "npz")
+    assert not (tmp_path / "npz" / "domain_00").exists()
+    export_npz(dataset, tmp_path / "npz")  # the same layout again replaces every file
+
+
+def load_bounds(dataset, split, name):
+    with h5py.File(dataset / f"{split}.h5", "r") as f:
+        return f[name].attrs["bounds_m"][...]
+
+
+def test_gns_minority_gns_keeps_every_key(tmp_path):
+    """Their dataset as docs/gns_data.md of geoelements/gns lays it out (a raised floor,
+    trajectories listed out of name order, statistics of their own making, optional keys),
+    imported and exported again: every key of metadata.json, every trajectory's name, order,
+    positions, particle types and material_property come back as they were; only our
+    "minority" section is added."""
+    src = tmp_path / "theirs"
+    src.mkdir()
+    trajs = {}
+    for name, phi in (("simulation_10", 25.0), ("simulation_2", 35.0), ("simulation_3", 30.0)):
+        pos = slide(tmp_path / f"{name}.h5", phi, kinematic=False) + np.float32([0, 0, 0.1])
+        trajs[name] = _object(pos, np.full(36, 6), np.float64(math.tan(math.radians(phi))))
+    np.savez_compressed(src / "train.npz", simulation_10=trajs["simulation_10"],
+                        simulation_2=trajs["simulation_2"])
+    np.savez_compressed(src / "test.npz", simulation_3=trajs["simulation_3"])
+    source = {"bounds": RAISED, "sequence_length": 16, "default_connectivity_radius": 0.03,
+              "material_feature_len": 1, "dim": 3, "dt": DT, "nnode_in": 38, "nedge_in": 4,
+              "nmessage_passing_steps": 10, "boundary_augment": 1.0,
+              "vel_mean": [1e-5, 0.0, -2e-4], "vel_std": [1e-3, 1e-6, 2e-3],
+              "acc_mean": [0.0, 0.0, -1e-5], "acc_std": [2e-4, 1e-7, 3e-4]}
+    (src / "metadata.json").write_text(json.dumps(source))
+    import_npz(src, tmp_path / "ds")
+    back = export_npz(tmp_path / "ds", tmp_path / "again")
+    again = json.loads((tmp_path / "again" / "metadata.json").read_text())
+    assert set(again) - set(source) == {"minority"} and again == back["datasets"]["."]
+    assert {k: again[k] for k in source} == source
+    for split in ("train", "test"):
+        theirs, ours = load_npz(src / f"{split}.npz"), load_npz(tmp_path / "again" / f"{split}.npz")
+        assert list(ours) == list(theirs)
+        for name, (pos, ptype, prop) in theirs.items():
+            np.testing.assert_array_equal(ours[name][0], pos)
+            np.testing.assert_array_equal(np.broadcast_to(ours[name][1], (36,)), ptype)
+            assert ours[name][2] == pytest.approx(prop, rel=1e-12)
+
+
+def test_the_test_split_takes_the_rollout_bounds(tmp_path):
+    """gns/train.py trains with read_metadata(path, "train") and rolls out (the test split)
+    with read_metadata(path, "rollout"): where the file is split by purpose, the test
+    trajectories' walls are the rollout section's."""
+    src = tmp_path / "theirs"
+    src.mkdir()
+    pos = slide(tmp_path / "r.h5", 25.0, kinematic=False)
+    np.savez_compressed(src / "train.npz", a=_object(pos, 6, 0.5))
+    np.savez_compressed(src / "test.npz", b=_object(pos, 6, 0.5))
+    common = {"sequence_length": 16, "default_connectivity_radius": 0.03, "dim": 3, "dt": DT,
+              "vel_mean": [0, 0, 0], "vel_std": [1, 1, 1], "acc_mean": [0, 0, 0],
+              "acc_std": [1, 1, 1]}
+    wide = [[0.0, 2.0], [0.0, 0.1], [0.0, 1.0]]
+    (src / "metadata.json").write_text(json.dumps({"train": {**common, "bounds": BOUNDS},
+                                                   "rollout": {**common, "bounds": wide}}))
+    import_npz(src, tmp_path / "ds")
+    assert load_split(tmp_path / "ds", "train")[0].bounds_m.tolist() == BOUNDS
+    assert load_split(tmp_path / "ds", "test")[0].bounds_m.tolist() == wide
+    export_npz(tmp_path / "ds", tmp_path / "again")
+    again = json.loads((tmp_path / "again" / "metadata.json").read_text())
+    assert set(again) == {"train", "rollout", "minority"}
+    assert again["train"] == {**common, "bounds": BOUNDS, "nnode_in": 38, "nedge_in": 4,
+                              "material_feature_len": 1}
+    assert again["rollout"] == {**again["train"], "bounds": wide}
+
+
+def test_train_and_test_in_two_domains_are_one_dataset_split_by_purpose(tmp_path):
+    """Train and valid scenes in one domain, test scenes in another (docs/gns_data.md of
+    geoelements/gns: "test in enlarged domain"): one dataset, its metadata.json split into
+    "train" and "rollout", each with its scenes' bounds and frame count."""
+    runs = tmp_path / "runs"
+    for split, frames in (("train", 16), ("valid", 16), ("test", 20)):
+        (runs / split).mkdir(parents=True)
+        slide(runs / split / f"{split}_0.h5", 20.0, frames=frames)
+    _move(runs / "test" / "test_0.h5", [0, 0, 0], NARROW)
+    build_from_runs([runs], tmp_path / "ds")
+    theirs = export_npz(tmp_path / "ds", tmp_path / "npz")
+    assert list(theirs["datasets"]) == ["."]
+    train, rollout = (gns_read_metadata(tmp_path / "npz", p) for p in ("train", "rollout"))
+    assert (train["bounds"], train["sequence_length"]) == (BOUNDS, 16)
+    assert (rollout["bounds"], rollout["sequence_length"]) == (NARROW, 20)
+    (pos, *_), = load_npz(tmp_path / "npz" / "test.npz").values()
+    assert gns_rollout_lengths(rollout, pos) == (14, 14)
+    import_npz(tmp_path / "npz", tmp_path / "back")
+    assert [t.bounds_m.tolist() for s in ("train", "valid", "test")
+            for t in load_split(tmp_path / "back", s)] == [BOUNDS, BOUNDS, NARROW]

@@ -47,6 +47,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+
 from minority.gns.dataset import SPLITS, DatasetError, load_metadata, load_split, pack
 from minority.gns.from_runs import to_packed
 from minority.protocol.trajectory import PARTICLE_TYPE_SAND, RunTrajectory

@@ -1,9 +1,10 @@
 """One import name: the distribution adds only `minority` to the import namespace (the
-repository's folders protocol/, insitu/, sim/, gns/, render_server/ install as its subpackages),
-and the layering holds: protocol imports none of the others; insitu (the in situ API) imports
-protocol only; sim imports protocol and insitu; gns and render_server import protocol; sim,
-gns and render_server never import each other; none of them imports the command layer
-(minority.cli, ...)."""
+repository's folders protocol/, insitu/, sim/, gns/, render_server/ are its subpackages through
+the symlinks minority/X -> ../X, so the source tree resolves without an install or an import
+hook, as static tools read it), and the layering holds: protocol imports none of the others;
+insitu (the in situ API) imports protocol only; sim imports protocol and insitu; gns and
+render_server import protocol; sim, gns and render_server never import each other; none of
+them imports the command layer (minority.cli, ...)."""
 
 import ast
 import subprocess
@@ -33,6 +34,19 @@ def test_the_subpackages_import_from_anywhere_and_the_old_names_do_not(tmp_path)
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_the_source_tree_resolves_without_an_install():
+    """From the repository root with no site-packages (python -S: no editable import hook),
+    as pyright and the IDEs resolve imports: every subpackage is found under minority/."""
+    code = ("import importlib.util as u; "
+            f"print([n for n in {OLD_NAMES!r} if u.find_spec('minority.' + n) is None])")
+    out = subprocess.run([sys.executable, "-S", "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    for name in OLD_NAMES:
+        assert (ROOT / "minority" / name).resolve() == (ROOT / name).resolve(), name
 
 
 def imported(path: Path) -> set[str]:

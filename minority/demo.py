@@ -25,10 +25,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from minority.oracle_cli import DEFAULT_CHECKPOINT as CHECKPOINT
 from minority.sim.columns import ColumnSpec, channel_column_toml
 
-ROOT = Path(__file__).resolve().parent.parent
-CHECKPOINT = ROOT / "gns" / "checkpoints" / "column_l64_m5.pt"
 RUN = "demo"
 
 

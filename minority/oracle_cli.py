@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import argparse
 import sys
+from importlib import resources
 from pathlib import Path
 
 from minority.cliargs import BAD_INPUT, FAILED, add_out, command, fail, missing, parent_made
 
-DEFAULT_SWEEP = Path(__file__).resolve().parent.parent / "gns" / "configs" / "column_sweep.toml"
-DEFAULT_CHECKPOINT = (Path(__file__).resolve().parent.parent / "gns" / "checkpoints"
-                      / "column_l64_m5.pt")
+# package data of minority.gns, found where the package is installed (a wheel's site-packages,
+# or the source tree); installed as files, never zipped, so each is a plain path
+GNS_DATA = Path(str(resources.files("minority.gns")))
+DEFAULT_SWEEP = GNS_DATA / "configs" / "column_sweep.toml"
+DEFAULT_CHECKPOINT = GNS_DATA / "checkpoints" / "column_l64_m5.pt"
 
 
 def _fail(step: str, exc: Exception, status: int) -> int:

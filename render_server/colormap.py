@@ -12,9 +12,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from functools import cache, lru_cache
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol.errors import SpecError
 from minority.protocol.view import InlineColormap, check_colormap_name
 
@@ -119,7 +121,7 @@ BUILTIN = {
 # ...and what that gives, shipped (`python -m minority.render_server.colormap` writes it;
 # tests/test_render_colormap.py checks it against VTK and matplotlib): a process that renders
 # a built-in preset imports neither (about 70 MB of a render rank's resident memory)
-TABLES = Path(__file__).with_name("colormap_tables.npz")
+TABLES = Path(str(resources.files("minority.render_server").joinpath("colormap_tables.npz")))
 
 
 @cache

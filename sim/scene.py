@@ -13,9 +13,11 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from enum import Enum
+from importlib import resources
 from pathlib import Path
 
-SCENES_DIR = Path(__file__).parent / "scenes"  # the shipped scene files
+# the shipped scene files: package data, installed as files wherever the package is
+SCENES_DIR = Path(str(resources.files("minority.sim").joinpath("scenes")))
 AXES = ("x", "y", "z")
 FACES = ("x_min", "x_max", "y_min", "y_max", "z_min", "z_max")
 DEFAULT_CFL = 0.3

@@ -112,16 +112,30 @@ def test_the_wheel_holds_the_package_and_its_data_and_builds_without_warnings(wh
     assert "absent from the `packages` configuration" not in printed
 
 
-def test_the_installed_package_is_the_wheels_not_the_source_tree(installed, tmp_path):
-    code = ("import minority, minority.sim, minority.gns, minority.render_server, "
-            "minority.protocol, minority.insitu; "
-            "print('\\n'.join(m.__file__ for m in (minority, minority.sim, minority.gns, "
-            "minority.render_server, minority.protocol, minority.insitu)))")
+def test_the_installed_package_and_its_data_are_the_wheels(installed, tmp_path):
+    """minority and its subpackages import from the new venv, not the source tree, and every
+    default that names shipped data (the demo's and `minority oracle`'s checkpoint, the
+    sweep config, the scenes, the colormap tables) is a file there."""
+    code = """
+import minority, minority.sim, minority.gns, minority.render_server, minority.protocol, minority.insitu
+from minority.demo import CHECKPOINT
+from minority.oracle_cli import DEFAULT_CHECKPOINT, DEFAULT_SWEEP
+from minority.render_server.colormap import TABLES
+from minority.sim.scene import builtin_scene_path
+for m in (minority, minority.sim, minority.gns, minority.render_server, minority.protocol,
+          minority.insitu):
+    print(m.__file__)
+for path in (CHECKPOINT, DEFAULT_CHECKPOINT, DEFAULT_SWEEP, TABLES, builtin_scene_path("tiny")):
+    assert path.is_file(), path
+    print(path)
+"""
     out = subprocess.run([str(installed / "python"), "-c", code], cwd=tmp_path, capture_output=True,
                          text=True, timeout=120, env=elsewhere_env(installed))
     assert out.returncode == 0, out.stderr
     site = installed.parent.resolve()
-    for line in out.stdout.split():
+    printed = out.stdout.split()
+    assert len(printed) == 11
+    for line in printed:
         assert Path(line).resolve().is_relative_to(site), line
 
 

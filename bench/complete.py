@@ -34,11 +34,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+
 from minority.protocol import Chunk, keys
 from minority.protocol.logread import read_log
 from minority.protocol.spec import Spec
 from minority.render_server.rerender import rerender
-from PIL import Image
 
 RUN = "demo"
 KEYS = {"complete": ("variant", "bytes", "chunks", "rows", "context_rows", "evicted",

@@ -57,6 +57,7 @@ def cases(fine: bool) -> list[tuple[str, dict]]:
 def measure(h5: Path) -> dict:
     """The run's peak, fast phase and final displacement (see the module doc)."""
     import h5py
+
     from minority.gns.events import fast_windows
     from minority.protocol.flow import SPEED_QUANTILE
 
@@ -87,9 +88,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the sweep config of test_003 (default: gns/configs/"
                          "column_sweep_cg2.toml)")
     args = ap.parse_args(argv)
-    from minority.sim.columns import channel_column_toml
-
     from bench.oracle_loop import scene_plans
+    from minority.sim.columns import channel_column_toml
     from minority.sweep import column, run_scene
 
     cfg, (base,) = scene_plans(["test_003"], args.config)

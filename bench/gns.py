@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 import torch
+
 from minority.gns.graph import radius_graph
 from minority.gns.model import GNS, ModelConfig
 from minority.gns.runtime import tune_allocator

@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numba
 import numpy as np
+
 from minority.insitu import PublishOptions, connect
 from minority.protocol import Spec, keys
 from minority.protocol.session import NetworkOptions, Role, open_session

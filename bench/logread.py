@@ -30,12 +30,13 @@ from pathlib import Path
 
 import numpy as np
 from mcap.reader import make_reader
+from PIL import Image
+
 from minority.protocol import Chunk, Frame, Stats, Timing, keys
 from minority.protocol.log import LogWriter, read_log
 from minority.protocol.messages import speed_histogram
 from minority.protocol.runlog import read_flow, read_run
 from minority.protocol.spec import Spec
-from PIL import Image
 
 RUN = "bench"
 PARTICLES = 12_960  # the demo's showcase column

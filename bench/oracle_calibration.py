@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from minority.gns.dataset import read_sim_trajectory
 from minority.gns.ensemble import EnsembleOptions, perturbed_starts, roll_members
 from minority.gns.events import event_times, fast_windows, find_events
@@ -47,7 +48,6 @@ from minority.gns.sweep import load_config, plan
 from minority.gns.train import load_checkpoint
 from minority.protocol.spec import inside_mask
 from minority.protocol.trajectory import read_sim
-
 from minority.sweep import complete, run_scene, scene_toml
 
 CONFIG = Path("gns/configs/column_sweep_cg2.toml")

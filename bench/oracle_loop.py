@@ -75,8 +75,8 @@ def scene_plans(names: list[str], config: Path = CONFIG):
 def open_spec(scene: Path, out: Path, frames: int, threads: int) -> Path:
     """The open-loop spec of the scene (run id RUN), as the demo makes it."""
     import torch
-    from minority.gns.oracle import Oracle, OracleOptions
 
+    from minority.gns.oracle import Oracle, OracleOptions
     from minority.warmstart import predict_scene
 
     torch.set_num_threads(threads)
@@ -165,7 +165,6 @@ def in_force_within(log: Path, result: dict) -> int:
 
 def measure(scene_name: str, loop: str, log: Path, wall: float) -> dict:
     from minority.protocol.runlog import log_specs
-
     from minority.score import load_run, score
 
     specs = log_specs(log)

@@ -78,10 +78,9 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
     """Start a server (pinned to its core), run the sim publishing to it, wait for the
     server to render the last step and exit; returns the sim's stepping wall time (s) and
     its publishing summary."""
+    from minority.demo import free_port
     from minority.insitu.publisher import PublishOptions
     from minority.protocol.session import NetworkOptions
-
-    from minority.demo import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with open(log.with_suffix(".server.log"), "w") as server_log:
@@ -104,9 +103,8 @@ def serve_and_publish(scene: Path, steps: int, spec_path: Path, log: Path,
 
 def measure(scene_name: str, steps: int, work: Path, repeats: int) -> dict:
     from minority.protocol.costs import step_accounting
-    from minority.sim.scene import builtin_scene_path
-
     from minority.report import load_run, timing_table
+    from minority.sim.scene import builtin_scene_path
 
     scene = builtin_scene_path(scene_name)
     spec_path = work / f"{scene_name}.json"

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
+
 from minority.protocol import Chunk, decode_as, keys
 from minority.protocol.log import LogWriter
 from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Publisher, Role, open_session

@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol import Chunk, Spec, Timing, decode_as, keys
 from minority.protocol.session import LOSSLESS_QOS, Inbox, NetworkOptions, Role, open_session, put
 from minority.render_server import overlay

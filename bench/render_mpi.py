@@ -159,9 +159,10 @@ def message_cost(comm, rounds: int = 200) -> float:
 def worker(kind: str, n: int, threads: int, scene: str = SCENE, sizes=SIZES) -> None:
     """One mpiexec job: every image size, REPEATS + 1 steps each; rank 0 prints JSON."""
     import numba
+    from mpi4py import MPI
+
     from minority.protocol import Chunk, decode_as
     from minority.render_server.render_mpi import Layers, render_step_distributed
-    from mpi4py import MPI
 
     numba.set_num_threads(threads)
     comm = MPI.COMM_WORLD

@@ -27,6 +27,7 @@ import json
 import time
 
 import numba
+
 from minority.sim.driver import PhaseTimes, Simulator
 from minority.sim.scene import builtin_scene_path, load_scene
 

@@ -62,11 +62,12 @@ def bench_spec(every: int):
 
 def worker(args: argparse.Namespace) -> None:
     """One rank (under mpiexec): warm up, run, rank 0 prints the JSON result."""
+    from mpi4py import MPI
+
     from minority.insitu.publisher import PublishOptions
     from minority.protocol.session import NetworkOptions
     from minority.sim.ranks import RankRunConfig, run_ranks
     from minority.sim.scene import builtin_scene_path
-    from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     warm = RankRunConfig(scene_path=builtin_scene_path("tiny"), out=None, threads=1,

@@ -30,13 +30,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
+
 from minority.gns.dataset import COARSE_GRAIN_METHODS, coarse_grain
 from minority.gns.events import find_events
 from minority.gns.metrics import deposit, relative_errors
 from minority.gns.runtime import tune_allocator
 from minority.gns.train import load_checkpoint
 from minority.sim.scene import load_scene, scene_path
-
 from minority.warmstart import predict_scene
 
 # coarse grids of the column_13k geometry: (cell m, particles per cell per axis); the domain is

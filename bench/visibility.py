@@ -17,6 +17,7 @@ import time
 
 import h5py
 import numpy as np
+
 from minority.gns.oracle import AERIAL_DIRECTION, fit_camera
 from minority.insitu.visibility import visible_mask
 from minority.protocol.spec import View

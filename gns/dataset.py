@@ -23,6 +23,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
 from minority.gns.metrics import deposit
 from minority.protocol.trajectory import read_sim
 

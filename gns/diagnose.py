@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+
 from minority.gns.dataset import Trajectory
 from minority.gns.graph import radius_graph
 

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from minority.gns.metrics import deposit
 
 PERTURBATIONS = ("jitter", "friction", "both")

@@ -6,6 +6,7 @@ import sys
 import time
 
 import numpy as np
+
 from minority.gns.dataset import load_metadata, load_split
 from minority.gns.metrics import Deposit, deposit, mean_position_error, relative_errors
 from minority.gns.rollout import RolloutError, rollout

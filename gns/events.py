@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from minority.protocol.flow import MOVING_SPEED_FRACTION, SPEED_QUANTILE  # noqa: F401 - re-exported
 
 ONSET_FRACTION = 0.05  # failure onset: the speed scale first exceeds this fraction of its peak

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol.trajectory import write_rollout
 from minority.protocol.vtkseries import ParticleFrame, VtkSeries
 

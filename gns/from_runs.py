@@ -15,6 +15,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
+
 from minority.gns.dataset import SPLITS, DatasetError, Packed, pack
 from minority.protocol.trajectory import (
     PARTICLE_TYPE_KINEMATIC,

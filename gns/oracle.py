@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from minority.gns.ensemble import deposit_spread, event_intervals
 from minority.gns.events import (
     EVENT_NAMES,

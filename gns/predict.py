@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from minority.gns.export import write_hdf5, write_vtk_series
 from minority.gns.rollout import initial_state, rollout
 from minority.gns.train import coarse_grain_stats, load_checkpoint

@@ -8,6 +8,7 @@ drift), which decides where a deposit stops.
 from __future__ import annotations
 
 import numpy as np
+
 from minority.gns.rollout import rollout
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from minority.gns.graph import radius_graph
 from minority.gns.metrics import deposit, relative_errors, signed_relative_error
 

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from minority.gns.dataset import COARSE_GRAIN_METHODS
 
 SPLITS = ("train", "valid", "test")

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from minority.gns.dataset import load_metadata, load_split
 from minority.gns.events import find_events
 from minority.gns.graph import radius_graph

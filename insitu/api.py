@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
+
 from minority.insitu.lend import BadStep, check_array, check_field, checked
 from minority.insitu.payload import ID_FIELD, MAGNITUDE, Particles, particle_bytes
 from minority.insitu.publisher import Bounds, PublishOptions, PublishStats, RankPublisher

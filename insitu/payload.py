@@ -22,6 +22,7 @@ import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from minority.insitu.visibility import visible_mask
 from minority.protocol.fields import FIELDS
 from minority.protocol.messages import SPEED_BINS, SPEED_EDGES_M_S, Stats

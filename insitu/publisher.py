@@ -45,6 +45,7 @@ from typing import TextIO
 
 import numpy as np
 import zenoh
+
 from minority.insitu.context import DEFAULT_TOLERANCE_M, ContextSplit, ContextTracker
 from minority.insitu.lend import LentStep, Loans
 from minority.insitu.outbox import (

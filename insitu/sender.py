@@ -50,6 +50,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import zenoh
+
 from minority.insitu.lend import BadStep
 from minority.insitu.outbox import CHUNK, CONTROL, STATS, OutboxItem
 from minority.protocol import keys

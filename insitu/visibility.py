@@ -27,6 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit, prange
+
 from minority.protocol.projection import (
     camera_basis,
     camera_coordinates,
@@ -35,7 +37,6 @@ from minority.protocol.projection import (
     to_pixels,
 )
 from minority.protocol.view import View
-from numba import njit, prange
 
 MAX_BINS = 1 << 22  # bins per image, a bound on the cover buffer (32 MiB)
 BINS_PER_RADIUS = 6.0  # bin edge ~ a sixth of the typical disk radius (px)

@@ -8,6 +8,7 @@ import re
 from typing import Annotated, Any
 
 import msgspec
+
 from minority.protocol.errors import ProtocolError
 
 # Safe inside one key-expression chunk and as one path component: 1-64 characters, the

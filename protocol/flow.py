@@ -9,6 +9,7 @@ faster than MOVING_SPEED_FRACTION of the run's peak speed scale.
 from __future__ import annotations
 
 import numpy as np
+
 from minority.protocol.messages import SPEED_EDGES_M_S
 
 MOVING_SPEED_FRACTION = 0.05  # a particle moves when faster than this fraction of the peak speed

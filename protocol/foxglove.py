@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
+
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
 from minority.protocol.logread import MCAP_MAGIC, read_log

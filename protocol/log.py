@@ -33,6 +33,7 @@ from pathlib import Path
 import msgspec
 import zenoh
 from mcap.writer import CompressionType, Writer
+
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
 from minority.protocol.logfile import ReservedFile

@@ -26,6 +26,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
+
 from minority.protocol.errors import ProtocolError
 from minority.protocol.messages import Chunk as ChunkMessage
 from minority.protocol.messages import Event, Frame, Stats, Timing, decode_as

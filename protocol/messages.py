@@ -13,6 +13,7 @@ from typing import Annotated, ClassVar, Literal
 
 import msgspec
 import numpy as np
+
 from minority.protocol import check
 from minority.protocol.check import Base64, Count, Name, NonNegative
 from minority.protocol.errors import ProtocolError

@@ -39,6 +39,7 @@ from mcap.records import (
 )
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
+
 from minority.protocol.errors import ProtocolError
 from minority.protocol.logread import MCAP_MAGIC
 

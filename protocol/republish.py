@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError
 from minority.protocol.logread import LogNote, read_log_noting

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError, SpecError
 from minority.protocol.logread import MCAP_MAGIC, LogNote, read_log_noting, topic_counts

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 
 import msgspec
+
 from minority.protocol import wire
 from minority.protocol.check import Base64, Count
 from minority.protocol.messages import CompressedImage, EventMeta, StatsMeta, TimingMeta

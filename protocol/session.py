@@ -29,6 +29,7 @@ from enum import StrEnum
 from pathlib import Path
 
 import zenoh
+
 from minority.protocol.auth import (
     Credentials,
     NoCredentialsError,

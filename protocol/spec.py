@@ -36,6 +36,7 @@ from typing import Annotated, ClassVar
 
 import msgspec
 import numpy as np
+
 from minority.protocol import check
 from minority.protocol.check import Name, NonNegative, Positive, Vec3
 from minority.protocol.errors import SpecError

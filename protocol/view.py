@@ -15,6 +15,7 @@ from functools import cache
 from typing import Annotated, Literal
 
 import msgspec
+
 from minority.protocol import check
 from minority.protocol.check import RGB, Finite, Name, NonNegative, Vec3
 from minority.protocol.errors import SpecError

@@ -33,6 +33,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 import numpy as np
+
 from minority.protocol.errors import ProtocolError
 
 MAGIC = b"MNRT"

@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from minority.render_server.bricks import Bricks, as_positions
 from numba import njit, prange
+
+from minority.render_server.bricks import Bricks, as_positions
 
 SPHERES_PER_CELL = 2.0  # target mean references per cell
 MAX_CELLS_PER_AXIS = 1024

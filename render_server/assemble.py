@@ -18,6 +18,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from minority.protocol.messages import Chunk
 
 DEFAULT_TIMEOUT_S = 5.0

@@ -12,9 +12,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit, prange
+
 from minority.protocol.projection import camera_basis, half_extents
 from minority.protocol.spec import Camera
-from numba import njit, prange
 
 
 class RayFrame(NamedTuple):

@@ -22,9 +22,10 @@ import math
 
 import numba
 import numpy as np
+from numba import njit, prange
+
 from minority.render_server.bricks import as_positions, extent
 from minority.render_server.camera import RayFrame, pixel_ray_unnormalized
-from numba import njit, prange
 
 BANDS_PER_WORKER = 8  # fewer, taller bands: fewer spheres listed twice (A/B: 1M -15%)
 DEPTH_BUCKETS = 256  # depth ordering resolution (front-to-back culling only; not correctness)

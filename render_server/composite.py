@@ -15,8 +15,9 @@ direct send, and a brick covers less of the image the more ranks there are.
 from __future__ import annotations
 
 import numpy as np
-from minority.render_server.distribute import Pool, alltoallv_rows
 from numba import njit, prange
+
+from minority.render_server.distribute import Pool, alltoallv_rows
 
 RECORD_WORDS = 3  # uint64 words of a pixel record: index << 24 | rgb, depth bits, key
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
+
 from minority.protocol import keys
 from minority.protocol.errors import ProtocolError, SpecError
 from minority.protocol.messages import MAX_RANKS, Chunk, Event, EventKind, Frame, Stats, Timing, decode_as

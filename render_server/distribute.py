@@ -29,8 +29,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from minority.render_server.bricks import as_positions, extent
 from numba import njit, prange
+
+from minority.render_server.bricks import as_positions, extent
 
 SAMPLE = 1 << 16  # particles, over all ranks, that choose the split planes
 LEAF = -1  # axis of a leaf node

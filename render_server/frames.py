@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+
 from minority.protocol.errors import SpecError
 from minority.protocol.spec import ID_FIELD, Region, Spec, View, inside_mask, render_radius_m
 from minority.protocol.view import NO_ANNOTATIONS

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+
 from minority.protocol.flow import MOVING_SPEED_FRACTION, histogram_quantile, moving_count
 from minority.protocol.messages import SPEED_BINS, Event, Frame, Stats, Timing
 from minority.protocol.spec import Spec

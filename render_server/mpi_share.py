@@ -21,6 +21,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 
 import numpy as np
+
 from minority.protocol import keys as keymod
 from minority.protocol.messages import Chunk
 from minority.protocol.spec import Spec

@@ -31,6 +31,9 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
+from PIL import Image, ImageDraw
+
 from minority.protocol.fields import colour_label
 from minority.protocol.projection import camera_basis, camera_coordinates, to_pixels
 from minority.protocol.view import View
@@ -45,8 +48,6 @@ from minority.render_server.glyphs import (
     tick_text,
     time_label,
 )
-from numba import njit
-from PIL import Image, ImageDraw
 
 Bounds = tuple[tuple[float, float, float], tuple[float, float, float]]  # (lo, hi) corners, m
 

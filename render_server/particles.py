@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
 from minority.render_server.assemble import AssembledStep
 
 Schema = tuple[tuple[str, str, tuple[int, ...]], ...]  # (name, dtype, trailing shape) per field

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from numba import njit, prange
+from PIL import Image
+
 from minority.protocol.projection import camera_basis
 from minority.protocol.spec import View
 from minority.render_server.accel import BrickGrids, build_grids
@@ -23,8 +26,6 @@ from minority.render_server.camera import pixel_ray, pixel_ray_unnormalized, pri
 from minority.render_server.cast import NO_KEYS, cast
 from minority.render_server.colormap import view_colormap
 from minority.render_server.trace import trace
-from numba import njit, prange
-from PIL import Image
 
 AMBIENT = 0.3
 DIFFUSE = 0.7

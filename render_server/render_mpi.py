@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from minority.protocol.spec import ID_FIELD, Spec, View, render_radius_m
 from minority.protocol.view import NO_ANNOTATIONS
 from minority.render_server.composite import composite

@@ -26,6 +26,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol import keys
 from minority.protocol.logread import LogNote, read_log_noting
 from minority.protocol.runlog import RunLogError, log_run, log_specs

@@ -44,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol.messages import Chunk
 from minority.protocol.spec import Spec
 from minority.render_server.assemble import AssembledStep, StepAssembler

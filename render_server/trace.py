@@ -14,9 +14,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit, prange
+
 from minority.render_server.accel import BrickGrids
 from minority.render_server.bricks import MAX_BRICKS, Bricks, as_positions
-from numba import njit, prange
 
 RAYS_PER_TASK = 256  # rays per parallel work item (scratch arrays are per item)
 NO_HIT = -1

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit, prange
+
 from minority.sim import kernels
 from minority.sim.driver import BlockBinning, NonFiniteError, Simulator
 from minority.sim.state import (
@@ -46,7 +48,6 @@ from minority.sim.state import (
     ParticleState,
     seed_particles,
 )
-from numba import njit, prange
 
 BLOCK = kernels.BLOCK_CELLS
 KEY_RANK_SHIFT = 40  # storage key = rank << 40 | local slot at the last reorder

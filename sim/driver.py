@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+
 from minority.sim import kernels
 from minority.sim.scene import FACES, Scene
 from minority.sim.state import GridState, ParticleState, make_grid, seed_particles

@@ -35,12 +35,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit, prange
+
 from minority.sim.plasticity import (
     elastoplastic_update,
     elastoplastic_update_scalar,
     elastoplastic_update_series,
 )
-from numba import njit, prange
 
 BLOCK_CELLS = 4  # block edge in cells (>= 2: a node is covered by at most 2 blocks per axis)
 BIN_CHUNKS = 16  # chunks of the parallel counting sort (fixed: the sort is the serial one)

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+
 from minority.protocol.trajectory import (
     PARTICLE_TYPE_SAND,
     SIM_FORMAT,

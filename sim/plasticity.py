@@ -19,8 +19,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from minority.sim.svd import svd3, sym_eig3, sym_eig3_scalar
 from numba import njit
+
+from minority.sim.svd import svd3, sym_eig3, sym_eig3_scalar
 
 DIM = 3
 SIGMA_MIN = 1e-4  # clamp for singular values before log (an inverted/collapsed F^E)

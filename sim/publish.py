@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+
 from minority.insitu.payload import Particles
 from minority.protocol.fields import FIELDS, FieldInfo
 from minority.sim.state import ParticleState

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from minority.sim.kernels import APIC_D_INV, WALL_TOL_CELLS
 from minority.sim.plasticity import dp_project_numpy
 

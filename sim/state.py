@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from minority.sim.kernels import GRID_FIELDS, permute_particles
 from minority.sim.scene import Scene, Shape
 

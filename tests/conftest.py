@@ -12,6 +12,7 @@ import zlib
 
 import numpy as np
 import pytest
+
 from minority.protocol import Chunk, Event, EventKind, Frame, Spec, Stats, Timing
 from minority.protocol.auth import CREDENTIALS_ENV
 from minority.protocol.session import NetworkOptions, Role, open_session

@@ -11,6 +11,8 @@ import threading
 import pytest
 import zenoh
 from conftest import free_port
+from test_loopback import wait_until
+
 from minority.protocol import auth, keys
 from minority.protocol import session as session_module
 from minority.protocol.auth import (
@@ -21,7 +23,6 @@ from minority.protocol.auth import (
     server_credentials,
 )
 from minority.protocol.session import Inbox, NetworkOptions, Role, open_session
-from test_loopback import wait_until
 
 
 def test_the_server_makes_a_private_password_and_keeps_it_across_restarts(endpoint):

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import make_chunk
+
+from minority.cli import main
 from minority.protocol import Spec, Stats, Timing
 from minority.protocol.errors import ProtocolError, SpecError
 from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, LogWriter
@@ -29,8 +31,6 @@ from minority.sim.scene import (
     SceneError,
     loads_scene,
 )
-
-from minority.cli import main
 
 RUN = "bad-input"
 SHIPPED_CHECKPOINT = SCENES_DIR.parent.parent / "gns" / "checkpoints" / "column_l64_m5.pt"

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from minority.gns.dataset import DatasetError, coarse_grain
 from minority.gns.metrics import deposit
 from minority.gns.sweep import SweepError, load_config, plan

@@ -9,13 +9,14 @@ import warnings
 
 import pytest
 from conftest import make_chunk
+from test_loopback import TIMEOUT_S, wait_until
+from test_render_daemon import RUN, done_event, send_step, spec
+
 from minority.protocol import Event, EventKind, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.runs import claim_frames_dir, open_writer
-from test_loopback import TIMEOUT_S, wait_until
-from test_render_daemon import RUN, done_event, send_step, spec
 
 
 @pytest.fixture

@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import free_port
-from minority.protocol import keys
-from minority.protocol.session import NetworkOptions, Role, make_config, open_session
 
 from minority.cli import build_parser
+from minority.protocol import keys
+from minority.protocol.session import NetworkOptions, Role, make_config, open_session
 
 ROOT = Path(__file__).parent.parent
 DEPLOY = ROOT / "deploy"

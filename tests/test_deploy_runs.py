@@ -25,6 +25,9 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import free_port
+from test_deploy import TIMEOUT_S, Seen, denied_then_allowed, make_certs, put_until_seen
+
+from minority import deploy_cli
 from minority.protocol import keys
 from minority.protocol.acl import (
     ConfigTextError,
@@ -33,9 +36,6 @@ from minority.protocol.acl import (
     router_config_text,
 )
 from minority.protocol.session import NetworkOptions, Role, make_config
-from test_deploy import TIMEOUT_S, Seen, denied_then_allowed, make_certs, put_until_seen
-
-from minority import deploy_cli
 
 ROOT = Path(__file__).parent.parent
 DEPLOY = ROOT / "deploy"

@@ -18,12 +18,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from test_loopback import wait_until
+
 from minority.protocol import Chunk, Stats
 from minority.protocol.log import read_log
 from minority.protocol.spec import Spec
 from minority.protocol.trajectory import read_trajectory
 from minority.render_server.daemon import RenderServer, ServerOptions
-from test_loopback import wait_until
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "dem_column"
 RUN = "dem-test"

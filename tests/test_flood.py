@@ -9,6 +9,7 @@ import socket
 import time
 
 import pytest
+
 from minority.protocol.session import (
     ACCEPT_PENDING,
     ACCEPT_TIMEOUT_MS,

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from conftest import make_chunk, make_png, make_spec
 from mcap.reader import make_reader
+from test_schemas import validate_log, varied_spec
+
 from minority.cli import main
 from minority.protocol import Frame, Spec, Stats, Timing, keys
-from minority.protocol.messages import decode_as
 from minority.protocol.foxglove import (
     PARTICLES_TOPIC,
     SCENE_TOPIC,
@@ -21,9 +22,9 @@ from minority.protocol.foxglove import (
     frustum_segments,
 )
 from minority.protocol.log import LogWriter, read_log
+from minority.protocol.messages import decode_as
 from minority.protocol.projection import camera_basis
 from minority.protocol.schemas import FOXGLOVE_SCHEMAS, JSON_SCHEMAS, NUMERIC_TYPES
-from test_schemas import validate_log, varied_spec
 
 _ITEM_TYPES = ("boolean", "string", "number", "integer", "object")
 

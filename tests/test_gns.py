@@ -9,6 +9,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+
 from minority.gns.dataset import build, load_metadata, load_split
 from minority.gns.export import write_vtk_series
 from minority.gns.model import GNS, ModelConfig, deepen
@@ -94,9 +95,8 @@ def test_sweep_extends_and_extra_tables_add_scenes_in_their_ranges(tmp_path):
 
 
 def test_cli_dataset_extra_scenes_override_the_config(monkeypatch, tmp_path, capsys):
-    from minority.gns import sweep as gns_sweep
-
     from minority.cli import main
+    from minority.gns import sweep as gns_sweep
 
     seen = {}
 

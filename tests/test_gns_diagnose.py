@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+
 from minority.gns.dataset import Trajectory
 from minority.gns.diagnose import balance, depth_below_surface, regions
 from minority.gns.model import GNS, ModelConfig

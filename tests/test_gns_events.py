@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from minority.gns.events import displacement_range, extent, find_events, moving_extent
 
 DT = 0.01

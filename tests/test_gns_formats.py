@@ -12,12 +12,12 @@ import zipfile
 import h5py
 import numpy as np
 import pytest
+
+from minority.cli import main
 from minority.gns.dataset import load_metadata, load_split
 from minority.gns.from_runs import build_from_runs, collect, estimate_spacing
 from minority.gns.npz import NpzError, export_npz, import_npz, load_npz
 from minority.protocol.trajectory import TrajectoryError, read_trajectory
-
-from minority.cli import main
 
 DT = 0.005  # s between frames
 S = 0.02  # particle spacing, m

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+
 from minority.gns.graph import radius_graph
 
 

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from minority.gns.dataset import Trajectory
 from minority.gns.events import find_events
 from minority.gns.train import Sampler

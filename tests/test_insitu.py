@@ -9,16 +9,16 @@ import json
 import numpy as np
 import pytest
 from conftest import free_port
+from test_loopback import wait_until
+from test_sim_publish import stalled_server, wait_for_subscriber
+
+from minority.cli import main
 from minority.insitu import PublishOptions, connect
 from minority.protocol import Chunk, Event, EventKind, Spec, Stats, decode_as, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import Inbox, NetworkOptions
 from minority.protocol.view import Window
 from minority.render_server.daemon import RenderServer, ServerOptions
-from test_loopback import wait_until
-from test_sim_publish import stalled_server, wait_for_subscriber
-
-from minority.cli import main
 
 RUN = "insitu-run"
 SPACING_M = 0.01

@@ -11,6 +11,8 @@ import msgspec
 import numpy as np
 import pytest
 from conftest import free_port
+from test_insitu import DT_S, RUN, SPACING_M, block, fields_at, spec_dict
+
 from minority.insitu import PublishOptions, connect
 from minority.insitu.lend import BadStep
 from minority.protocol import Chunk, Event, EventKind, Stats
@@ -18,7 +20,6 @@ from minority.protocol.log import read_log
 from minority.sim.driver import Simulator
 from minority.sim.publish import sim_fields
 from minority.sim.scene import builtin_scene_path, load_scene
-from test_insitu import DT_S, RUN, SPACING_M, block, fields_at, spec_dict
 
 BOUNDS = ((0.0, 0.0, 0.0), (0.3, 0.1, 0.1))
 

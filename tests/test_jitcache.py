@@ -9,9 +9,9 @@ from importlib.util import find_spec
 from pathlib import Path
 
 import pytest
-from minority.protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
 
 from minority.cli import NUMBA_PACKAGES, main
+from minority.protocol.jitcache import MARKER, drop_stale_numba_cache, numba_cache_dir, sources_digest
 
 # what the entry point does before a command that runs kernels, then the command's import
 ENTRY_POINT = textwrap.dedent("""

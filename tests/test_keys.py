@@ -1,6 +1,7 @@
 """Key expressions of docs/architecture.md and their parsing."""
 
 import pytest
+
 from minority.protocol import keys
 
 

@@ -16,14 +16,14 @@ import threading
 import numpy as np
 import pytest
 from conftest import free_port, make_png, make_spec
-from minority.protocol import Event, EventKind, Frame, Spec, Stats, Timing
-from minority.protocol.messages import SPEED_BINS
-from minority.render_server.live import LiveView
-from minority.render_server.live_http import parse_address
 from test_loopback import TIMEOUT_S, wait_until
 from test_render_daemon import EveryStep
 
 from minority.cli import main
+from minority.protocol import Event, EventKind, Frame, Spec, Stats, Timing
+from minority.protocol.messages import SPEED_BINS
+from minority.render_server.live import LiveView
+from minority.render_server.live_http import parse_address
 
 RUN = "test-run"
 CHROMIUM = "/usr/bin/chromium"
@@ -356,13 +356,14 @@ BROWSER_SPEC = {
 @pytest.mark.skipif(not shutil.which(CHROMIUM), reason=f"no browser at {CHROMIUM} (Debian's "
                     "chromium package; .ci/run installs it)")
 def test_a_browser_watches_a_run_live(server, endpoint, tmp_path):
+    from PIL import Image
+    from playwright.sync_api import sync_playwright
+
     from minority.insitu.publisher import PublishOptions
     from minority.protocol.session import NetworkOptions
     from minority.render_server.daemon import RenderServer, ServerOptions
     from minority.sim.ranks import RankRunConfig, run_ranks
     from minority.sim.scene import builtin_scene_path
-    from PIL import Image
-    from playwright.sync_api import sync_playwright
 
     spec = Spec.from_dict(BROWSER_SPEC)
     view = LiveView(tmp_path / "frames", "127.0.0.1", 0, push_interval_s=0.05)

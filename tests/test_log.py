@@ -8,6 +8,7 @@ import pytest
 from conftest import make_chunk, sample_messages
 from mcap.reader import make_reader
 from mcap.writer import CompressionType
+
 from minority.protocol import Chunk, Frame, ProtocolError, Timing
 from minority.protocol.log import (
     REJECTED_TOPIC,

@@ -10,6 +10,7 @@ import pytest
 from conftest import PAGE_BYTES, fill, make_chunk
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType
+
 from minority.protocol import keys, logfile
 from minority.protocol.log import LogWriter, read_log
 from minority.protocol.repair import LogState, scan

@@ -8,11 +8,11 @@ import pytest
 from conftest import make_chunk, sample_messages
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+
+from minority import log_cli
 from minority.protocol.errors import ProtocolError
 from minority.protocol.log import LogWriter, read_log
 from minority.protocol.repair import LogState, RepairResult, is_complete, repair, scan
-
-from minority import log_cli
 
 CUTS = 97  # byte offsets tried per log (as test_log's truncation test)
 

@@ -11,6 +11,7 @@ import time
 import warnings
 
 from conftest import fail_call, make_chunk
+
 from minority.protocol import Chunk, decode_as, keys
 from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, Recorder, read_log
 from minority.protocol.session import LOSSLESS_QOS, Inbox, put

@@ -8,8 +8,6 @@ import io
 import imageio_ffmpeg
 import numpy as np
 import pytest
-from minority.protocol import Frame
-from minority.protocol.log import read_log
 from PIL import Image
 from test_replay import (  # noqa: F401 - recorded: a fixture
     RECORDED,
@@ -31,6 +29,8 @@ from minority.movie import (
     write_movies,
     write_mp4,
 )
+from minority.protocol import Frame
+from minority.protocol.log import read_log
 
 COLOURS = [(200, 30, 30), (30, 200, 30), (30, 30, 200), (128, 128, 128), (240, 220, 40)]
 TOLERANCE = 6  # mean channel value, 0-255: what H.264 at the movie quality may move

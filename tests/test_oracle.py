@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+
 from minority.gns.export import write_hdf5
 from minority.gns.oracle import Oracle, OracleOptions, fit_camera
 from minority.protocol import Camera, Spec
@@ -184,6 +185,7 @@ def test_preview_contact_sheet(tmp_path):
 
 def test_an_mpm_run_reads_as_a_prediction(tmp_path):
     import h5py
+
     from minority.protocol.trajectory import SIM_FORMAT, read_rollout
 
     pos = collapse(frames=41)

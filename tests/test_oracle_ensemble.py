@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+
 from minority.gns.ensemble import (
     EnsembleOptions,
     band,
@@ -204,11 +205,11 @@ def test_cli_spec_ensemble_on_a_tiny_rollout(tmp_path, capsys):
     """--ensemble 3 rolls the rollout's checkpoint from perturbed starts and writes a spec
     with intervals and a deposit spread; without it the spec is the single rollout's."""
     import torch
+
+    from minority.cli import main
     from minority.gns.export import write_hdf5
     from minority.gns.model import GNS, ModelConfig
     from minority.gns.rollout import rollout
-
-    from minority.cli import main
 
     stats = {"vel_mean": [0.0] * 3, "vel_std": [1e-3] * 3, "acc_mean": [0.0, 0.0, -1e-4],
              "acc_std": [1e-4] * 3, "friction_mean_deg": 30.0, "friction_std_deg": 5.0,

@@ -9,12 +9,6 @@ import threading
 
 import numpy as np
 import pytest
-from minority.gns.dataset import coarse_grain
-from minority.insitu import connect
-from minority.protocol import Spec
-from minority.protocol.errors import SpecError
-from minority.protocol.messages import Stats, speed_histogram
-from minority.render_server.daemon import RenderServer, ServerOptions
 from test_loopback import wait_until
 
 from minority.follow import (
@@ -28,6 +22,12 @@ from minority.follow import (
     observed_events,
     shifted,
 )
+from minority.gns.dataset import coarse_grain
+from minority.insitu import connect
+from minority.protocol import Spec
+from minority.protocol.errors import SpecError
+from minority.protocol.messages import Stats, speed_histogram
+from minority.render_server.daemon import RenderServer, ServerOptions
 
 RUN = "follow-run"
 DT = 0.001  # s per sim step of the synthetic runs
@@ -227,9 +227,8 @@ def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates()
 
 
 def test_a_segment_plans_no_window_before_its_adoption():
-    from minority.gns.oracle import OracleOptions
-
     from minority.follow import _Segment
+    from minority.gns.oracle import OracleOptions
 
     rng = np.random.default_rng(0)
     x0 = rng.uniform(0.0, 0.2, (200, 3))
@@ -355,10 +354,9 @@ def test_a_snapshot_keeps_the_servers_cache_of_the_outside(tmp_path):
     outside that did not move."""
     import json
 
+    from minority.demo import free_port
     from minority.protocol.log import read_log
     from minority.protocol.messages import Chunk
-
-    from minority.demo import free_port
 
     d = spec(snapshots=[0.0025]).to_dict()
     d["views"][0]["schedule"] = [{"every_steps": 1, "regions": ["a"]}]
@@ -393,10 +391,9 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames, slo
     """The real re-forecast on a small column (the shipped checkpoint, 128 particles at its
     spacing): rolled to rest, planned from plan()'s time within its frames (none when under
     2 a view are left), a spec that encodes (its provenance plain JSON)."""
-    from minority.gns.train import load_checkpoint
-
     from minority.demo import CHECKPOINT
     from minority.follow import reforecast
+    from minority.gns.train import load_checkpoint
 
     model, ckpt = load_checkpoint(CHECKPOINT)
     stats = ckpt["stats"]
@@ -706,9 +703,8 @@ def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land(early):
 def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
     """A rollout at rest joined to a run speeding up: the frames follow the joined speed
     scale (speed^4), most of them at the end, not evenly as the resting rollout would."""
-    from minority.gns.oracle import OracleOptions
-
     from minority.follow import _Segment
+    from minority.gns.oracle import OracleOptions
 
     x0 = lattice(4, 0.05)
     rest = np.repeat(x0[None], 41, axis=0)  # 0.2 s of a rollout that does not move
@@ -723,10 +719,9 @@ def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
 
 
 def test_a_rollout_the_trend_replaces_stops_after_its_first_chunk():
-    from minority.gns.train import load_checkpoint
-
     from minority.demo import CHECKPOINT
     from minority.follow import roll_to_rest
+    from minority.gns.train import load_checkpoint
 
     model, ckpt = load_checkpoint(CHECKPOINT)
     h = float(ckpt["stats"]["particle_spacing_m"])

@@ -6,9 +6,10 @@ refused by path, and a view's overlay is composed once."""
 import json
 
 import jsonschema
-import minority.render_server.frames as frames
 import numpy as np
 import pytest
+
+import minority.render_server.frames as frames
 from minority.protocol.errors import SpecError
 from minority.protocol.fields import FIELDS, colour_label
 from minority.protocol.schemas import JSON_SCHEMAS

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+
 from minority.protocol.errors import SpecError
 from minority.protocol.paraview import (
     MAX_PVCC_BYTES,

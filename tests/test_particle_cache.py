@@ -6,6 +6,9 @@ import io
 import numpy as np
 import pytest
 from conftest import make_chunk
+from test_loopback import wait_until
+from test_sim_publish import RUN, config, spec_dict
+
 from minority.insitu.context import ContextTracker
 from minority.protocol import Chunk, ProtocolError, Spec, Timing, decode_as, keys
 from minority.protocol.session import Inbox
@@ -14,8 +17,6 @@ from minority.render_server.assemble import StepAssembler
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.particles import ParticleCache, complete_step
 from minority.sim.ranks import run_ranks
-from test_loopback import wait_until
-from test_sim_publish import RUN, config, spec_dict
 
 
 def chunk_with_context(n=10, context=4, evict=(7, 9), reset=True) -> Chunk:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from minority.insitu.visibility import visible_mask
 from minority.protocol.projection import (
     camera_basis,

@@ -6,6 +6,7 @@ import struct
 
 import pytest
 from conftest import sample_messages
+
 from minority.protocol import Chunk, Event, Frame, ProtocolError, Spec, Timing, decode_as, decode_message
 from minority.protocol.wire import ALIGN, PREFIX, PREFIX_SIZE
 
@@ -114,6 +115,7 @@ def test_fuzz_decoder_raises_only_protocol_error(name):
 def test_an_empty_array_with_absurd_dimensions_is_a_protocol_error():
     """Zero elements pass the size checks, but numpy refuses the shape: still ProtocolError."""
     import numpy as np
+
     from minority.protocol.wire import MessageKind, decode, encode
 
     payload = bytes(encode(MessageKind.CHUNK, {"a": 1},

@@ -13,6 +13,7 @@ from pathlib import Path
 import msgspec
 import pytest
 from conftest import sample_messages
+
 from minority.protocol import Chunk, decode_message
 
 GOLDEN = Path(__file__).parent / "golden"

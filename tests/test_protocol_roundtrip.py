@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 from conftest import make_chunk, make_png, sample_messages
+
 from minority.protocol import (
     Chunk,
     Event,

@@ -2,6 +2,7 @@
 
 import numpy as np
 from conftest import make_chunk
+
 from minority.render_server.assemble import StepAssembler
 
 MS = 1_000_000

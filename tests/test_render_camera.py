@@ -3,10 +3,11 @@ projection matrix (within 0.5 px), perspective and parallel; rays pass through t
 
 import numpy as np
 import pytest
+from vtkmodules.vtkRenderingCore import vtkCamera
+
 from minority.protocol.projection import camera_basis, project
 from minority.protocol.spec import Camera
 from minority.render_server.camera import primary_rays
-from vtkmodules.vtkRenderingCore import vtkCamera
 
 WIDTH, HEIGHT = 640, 480
 PIXEL_TOL = 0.5

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+
 from minority.protocol import SpecError
 from minority.render_server.colormap import builtin_presets, from_paraview, load_presets, preset, to_paraview
 

@@ -9,11 +9,12 @@ import warnings
 import numpy as np
 import pytest
 from conftest import make_chunk
+from test_loopback import TIMEOUT_S, wait_until
+
 from minority.protocol import Frame, Spec, Timing, decode_as, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import LOSSLESS_QOS, Inbox, put
 from minority.render_server.daemon import RenderServer, ServerOptions
-from test_loopback import TIMEOUT_S, wait_until
 
 RUN = "test-run"
 

@@ -4,9 +4,10 @@ subset; inline colormaps; every_s cadences decided with the previous step's time
 
 import dataclasses
 
-import minority.render_server.frames as frames
 import numpy as np
 import pytest
+
+import minority.render_server.frames as frames
 from minority.protocol.errors import SpecError
 from minority.protocol.spec import InlineColormap, Spec, inside_mask
 from minority.render_server.assemble import AssembledStep

@@ -5,9 +5,10 @@ import io
 
 import numpy as np
 import pytest
+from PIL import Image
+
 from minority.protocol.spec import Camera, View
 from minority.render_server.render import encode_png, render_step
-from PIL import Image
 
 
 def one_sphere_view(**kw) -> View:

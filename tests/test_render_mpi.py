@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_port
+
+from minority.demo import DemoOptions, demo_column
 from minority.protocol import keys
 from minority.protocol.log import read_log
 from minority.protocol.spec import Spec
@@ -36,8 +38,6 @@ from minority.render_server.frames import render_views
 from minority.render_server.particles import ParticleCache, complete_step
 from minority.render_server.render_mpi import SHADOWS_REFUSED, render_views_distributed
 from minority.render_server.rerender import MAX_PENDING_STEPS, recorded_steps
-
-from minority.demo import DemoOptions, demo_column
 
 TIMEOUT_S = 600
 CASES = ("lattice", "heap", "column")

@@ -3,6 +3,7 @@ particle per pixel, also for spheres straddling brick faces."""
 
 import numpy as np
 import pytest
+
 from minority.protocol.spec import Camera
 from minority.render_server.accel import build_grids
 from minority.render_server.bricks import repartition

@@ -9,6 +9,11 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 from conftest import free_port, make_chunk
+from PIL import Image
+from test_loopback import wait_until
+from test_render_daemon import EveryStep
+
+from minority.cli import main
 from minority.protocol import Frame, ProtocolError, Spec, keys
 from minority.protocol.log import read_log
 from minority.protocol.republish import REPLAY_QOS
@@ -18,11 +23,6 @@ from minority.protocol.spec import Region, View
 from minority.render_server.assemble import AssembledStep
 from minority.render_server.daemon import RenderServer, ServerOptions
 from minority.render_server.rerender import UNRECORDED, covered, missing_data, unrecorded
-from PIL import Image
-from test_loopback import wait_until
-from test_render_daemon import EveryStep
-
-from minority.cli import main
 from minority.replay import replay
 
 RUN = "replay-run"

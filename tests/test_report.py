@@ -9,12 +9,12 @@ import sys
 import numpy as np
 import pytest
 from conftest import make_png, make_spec
+
+from minority.cli import main
 from minority.protocol import Chunk, Event, EventKind, Frame, Timing
 from minority.protocol.costs import byte_summary, step_accounting, timing_table, total_particles
 from minority.protocol.log import LogWriter
 from minority.protocol.runlog import RunLogError
-
-from minority.cli import main
 from minority.report import load_run, markdown, plots
 
 RUN = "rep"

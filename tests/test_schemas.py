@@ -7,6 +7,7 @@ import json
 import jsonschema
 from conftest import make_spec, sample_messages
 from mcap.reader import make_reader
+
 from minority.protocol import Event, EventKind, Spec
 from minority.protocol.log import LogWriter
 

@@ -4,11 +4,11 @@ import json
 
 import numpy as np
 import pytest
+
 from minority.protocol import Chunk, Frame, Spec, Stats
 from minority.protocol.flow import histogram_quantile, moving_count
 from minority.protocol.log import LogWriter
 from minority.protocol.messages import SPEED_BINS, speed_histogram
-
 from minority.score import load_run, markdown, score
 
 RUN = "scored"

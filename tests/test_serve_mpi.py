@@ -25,11 +25,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import TINY_SPEC, free_port, make_chunk, make_spec
+from PIL import Image
+
 from minority.protocol.log import LogTruncatedWarning, LogWriter, read_log
 from minority.protocol.shards import shard_path, shard_paths
 from minority.render_server.assemble import AssembledStep
 from minority.render_server.serve_mpi import RankCache, Release, build_share, chunk_keys
-from PIL import Image
 
 TIMEOUT_S = 300
 ENV = {**os.environ, "NUMBA_NUM_THREADS": "1"}
@@ -307,7 +308,6 @@ def test_a_rank_is_guarded_only_under_a_launcher_of_several_ranks(monkeypatch):
 ])
 def test_rank_0_listens_where_its_config_file_says(tmp_path, text, endpoints):
     from minority.protocol.session import NetworkOptions
-
     from minority.serve_ranks import _config_listen
 
     (tmp_path / "c.json5").write_text(text)

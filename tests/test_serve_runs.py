@@ -9,12 +9,13 @@ import warnings
 
 from conftest import make_chunk
 from mcap.reader import make_reader
+from test_loopback import TIMEOUT_S, wait_until
+from test_render_daemon import spec
+
 from minority.protocol import Spec, keys
 from minority.protocol.log import LogTruncatedWarning, read_log
 from minority.protocol.session import LOSSLESS_QOS, Inbox, NetworkOptions, Role, open_session, put
 from minority.render_server.daemon import RenderServer, ServerOptions
-from test_loopback import TIMEOUT_S, wait_until
-from test_render_daemon import spec
 
 
 def spec_for(run: str) -> Spec:

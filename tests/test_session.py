@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import free_port
+
 from minority.protocol.session import (
     ACCEPT_PENDING,
     ACCEPT_TIMEOUT_MS,

@@ -26,13 +26,13 @@ import h5py
 import pytest
 from conftest import free_port
 from mcap.reader import make_reader
+
+from minority.cli import main
 from minority.protocol.log import LogDamagedWarning, LogTruncatedWarning, read_log
 from minority.protocol.messages import Event, EventKind, Stats
 from minority.sim import launcher
 from minority.sim.launcher import StopSignals, stopped_status
 from minority.sim.scene import SCENES_DIR
-
-from minority.cli import main
 
 LINE_TIMEOUT_S = 240  # the first step compiles the kernels when numba's cache is cold
 EXIT_TIMEOUT_S = 60

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from minority.sim.columns import ColumnSpec, channel_column
 from minority.sim.driver import Simulator
 

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from numba import njit
+
 from minority.sim.plasticity import (
     SERIES_MAX_Y,
     dp_project,
@@ -15,7 +17,6 @@ from minority.sim.plasticity import (
 )
 from minority.sim.scene import DPCone, Material
 from minority.sim.svd import svd3, sym_eig3_scalar
-from numba import njit
 
 # tolerances (absolute, on O(1) quantities)
 SVD_TOL = 1e-12

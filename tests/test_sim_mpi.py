@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 import pytest
 from conftest import free_port
+
 from minority.insitu.publisher import STATS_EVERY_S
 from minority.protocol.log import read_log
 from minority.protocol.messages import speed_histogram

@@ -10,6 +10,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
+
 from minority.protocol.trajectory import (
     PARTICLE_TYPE_SAND,
     SIM_FORMAT,

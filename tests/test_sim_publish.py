@@ -21,6 +21,8 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import fail_call, free_port
+from test_loopback import wait_until
+
 from minority.insitu.outbox import CONTROL, STATS, Outbox, OutboxItem
 from minority.insitu.payload import cull, flow_stats, particle_bytes, speed_bins
 from minority.insitu.publisher import PublishOptions, record_path
@@ -37,7 +39,6 @@ from minority.sim.publish import SIM_FIELDS, sim_particles
 from minority.sim.ranks import RankRunConfig, run_ranks
 from minority.sim.scene import builtin_scene_path, load_scene
 from minority.sim.state import PARTICLE_FIELDS, seed_particles
-from test_loopback import wait_until
 
 RUN = "test-run"
 TINY = builtin_scene_path("tiny")  # 0.1 m column at x in [0, 0.1] m

@@ -1,6 +1,7 @@
 """Scene loading: shipped scenes, particle counts, errors that name the bad key."""
 
 import pytest
+
 from minority.sim.columns import ColumnSpec, channel_column_toml
 from minority.sim.scene import SCENES_DIR, SceneError, Shape, builtin_scene_path, load_scene, loads_scene
 from minority.sim.state import seed_particles

@@ -3,6 +3,7 @@
 import numba
 import numpy as np
 import pytest
+
 from minority.sim import kernels
 from minority.sim.columns import ColumnSpec, channel_column
 from minority.sim.driver import NonFiniteError, Simulator, TimeStepError

@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 import pytest
+
 from minority.sim.columns import ColumnSpec, channel_column
 from minority.sim.driver import Simulator
 

@@ -5,6 +5,7 @@ kept ones, through the server's own ray caster, and requires identical pixels.""
 
 import numpy as np
 import pytest
+
 from minority.insitu.payload import Particles, cull
 from minority.insitu.visibility import visible_mask
 from minority.protocol.errors import SpecError

@@ -31,6 +31,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import TINY_SPEC, free_port
+
 from minority.protocol import EventKind
 from minority.protocol.log import read_log
 

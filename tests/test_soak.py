@@ -18,13 +18,14 @@ import pytest
 import zenoh
 from conftest import fill, free_port, make_chunk
 from mcap.reader import make_reader
+from test_auth import Squatter
+from test_loopback import TIMEOUT_S, wait_until
+from test_render_daemon import EveryStep, spec
+
 from minority.protocol import Event, EventKind, Spec, Timing, keys
 from minority.protocol.auth import CredentialsError
 from minority.protocol.session import LOSSLESS_QOS, NetworkOptions, Role, open_session, put
 from minority.render_server.daemon import RenderServer, ServerOptions
-from test_auth import Squatter
-from test_loopback import TIMEOUT_S, wait_until
-from test_render_daemon import EveryStep, spec
 
 pytestmark = pytest.mark.slow
 

@@ -6,6 +6,7 @@ import math
 
 import pytest
 from conftest import make_spec
+
 from minority.protocol import Spec, SpecError, View, Window
 
 
@@ -306,6 +307,7 @@ def test_numbers_that_json_cannot_hold_are_refused_from_python_objects_too():
 def test_what_to_dict_writes_reads_back_through_the_document_types():
     """The model's JSON and the document types (the decoder, the stored schema) agree."""
     import msgspec
+
     from minority.protocol.spec import SpecDocument
 
     d = base()

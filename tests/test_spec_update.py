@@ -7,12 +7,13 @@ import io
 
 import pytest
 from conftest import make_chunk
+from test_loopback import wait_until
+from test_render_daemon import RUN, spec
+
 from minority.insitu import connect
 from minority.protocol import Spec, decode_as, keys
 from minority.protocol.log import read_log
 from minority.protocol.session import CONTROL_QOS, LOSSLESS_QOS, put
-from test_loopback import wait_until
-from test_render_daemon import RUN, spec
 
 
 def updated(every_steps: int, reason: str) -> Spec:

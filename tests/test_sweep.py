@@ -10,11 +10,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+
 from minority.gns.dataset import build, load_split
 from minority.gns.sweep import SweepError, load_config, plan
 from minority.protocol.trajectory import SIM_FORMAT, UNITS, FrameWriter, frames_written
 from minority.sim.scene import loads_scene
-
 from minority.sweep import frames_due, run_sweep, scene_toml
 
 CONFIGS = Path(__file__).resolve().parent.parent / "gns" / "configs"

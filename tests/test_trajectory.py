@@ -7,6 +7,7 @@ import json
 import h5py
 import numpy as np
 import pytest
+
 from minority.protocol.trajectory import (
     FRAME_FIELDS,
     ROLLOUT_FORMAT,

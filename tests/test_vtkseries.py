@@ -6,6 +6,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+
 from minority.protocol.vtkseries import ParticleFrame, VtkSeries
 
 pytest.importorskip("vtkmodules")

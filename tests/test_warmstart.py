@@ -2,11 +2,11 @@
 
 import numpy as np
 import pytest
+
+from minority.demo import CHECKPOINT, DemoOptions, demo_column
 from minority.gns.predict import predict
 from minority.gns.rollout import initial_state
 from minority.gns.train import load_checkpoint
-
-from minority.demo import CHECKPOINT, DemoOptions, demo_column
 from minority.warmstart import mpm_history
 
 

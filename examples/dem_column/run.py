@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dem  # noqa: E402  (this folder is not a package)
+
 from minority.protocol.messages import EventKind  # noqa: E402
 from minority.protocol.trajectory import (  # noqa: E402
     PARTICLE_TYPE_SAND,

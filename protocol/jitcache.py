@@ -47,7 +47,8 @@ def numba_cache_dir(package_dir: Path) -> Path:
     if not config.CACHE_DIR:
         return package_dir / "__pycache__"
     from numba.core.caching import _CacheLocator
-    init = str(package_dir.resolve() / "__init__.py")
+    # the path as numba sees the module's file (through minority/X -> ../X), not resolved
+    init = os.path.abspath(package_dir / "__init__.py")
     return Path(config.CACHE_DIR) / _CacheLocator.get_suitable_cache_subpath(init)
 
 

@@ -95,6 +95,20 @@ def test_drop_works_in_numba_cache_dir(tmp_path, monkeypatch):
     assert not (pkg / "__pycache__").exists()
 
 
+@pytest.mark.parametrize("package", NUMBA_PACKAGES)
+def test_the_cache_dir_is_the_one_numba_writes_for_the_package(package, tmp_path, monkeypatch):
+    """Through the minority/X -> ../X symlinks the package's folder is minority/X: the cache
+    folder under NUMBA_CACHE_DIR must be the one numba names from its modules' files."""
+    from numba.core.caching import _CacheLocator
+
+    monkeypatch.setattr("numba.core.config.CACHE_DIR", str(tmp_path))
+    folder = Path(find_spec(package).submodule_search_locations[0])
+    module = next(p for p in sorted(folder.glob("*.py")) if p.name != "__init__.py")
+    numba_own = Path(tmp_path) / _CacheLocator.get_suitable_cache_subpath(
+        find_spec(f"{package}.{module.stem}").origin)
+    assert numba_cache_dir(folder) == numba_own
+
+
 def test_importing_the_numba_packages_does_no_housekeeping(tmp_path):
     """No work at import time: the packages import without hashing or touching a cache."""
     cache = tmp_path / "numba-cache"

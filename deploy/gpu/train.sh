@@ -33,7 +33,7 @@ if ! "$PY" -c "import minority.gns.train" 2>/dev/null; then
     "$PY" -m pip install -q --no-index --no-deps --no-build-isolation --no-compile \
         --target /tmp/site .
     export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-    export PYTHONSAFEPATH=1  # not ./minority (the checkout's, without its subpackages)
+    export PYTHONSAFEPATH=1  # import the installed copy in /tmp/site, not the checkout
     "$PY" -c "import minority.gns.train"
 fi
 "$PY" -c "import torch; print('gpu-train: torch', torch.__version__, 'cuda' if torch.cuda.is_available() else 'cpu only')" | tee -a "$LOG" >&2

@@ -91,7 +91,8 @@ def _dataset_parser(osub) -> None:
                           "them (repeatable); a folder's train/, valid/, test/ subfolders "
                           "give their splits, other files are split by --valid / --test")
     src.add_argument("--from-npz", type=_existing_path, metavar="DIR",
-                     help="convert this geoelements/gns dataset instead of the sweep")
+                     help="convert this geoelements/gns dataset instead of the sweep (or an "
+                          "export-npz directory of domain_NN datasets)")
     q.add_argument("--valid", type=int, default=1, metavar="N",
                    help="--from-runs: the last N runs by file name (before the test ones) "
                         "validate")
@@ -176,7 +177,10 @@ def _export_npz_parser(osub) -> None:
                             "metadata.json (bounds, sequence_length, "
                             "default_connectivity_radius, dim, dt, velocity and acceleration "
                             "statistics, plus a 'minority' section that `minority oracle "
-                            "dataset --from-npz` reads back).")
+                            "dataset --from-npz` reads back). sequence_length is the frame "
+                            "count (null where lengths differ); scenes with different bounds "
+                            "go to one dataset per domain (DIR/domain_NN), or to train and "
+                            "rollout sections when only the test split's domain differs.")
     q.add_argument("dataset", type=Path, help="dataset directory (minority oracle dataset)")
     add_out(q, "directory of the npz dataset", metavar="DIR", required=True)
     q.add_argument("--material", choices=["tan_phi", "deg", "none"], default="tan_phi",
@@ -200,6 +204,9 @@ def _cmd_export_npz(args: argparse.Namespace) -> int:
     n = sum(len(v) for v in meta["minority"]["scenes"].values())
     print(f"npz dataset {args.out}: {n} trajectories, dt {meta['dt']} s, radius "
           f"{meta['default_connectivity_radius']} m", file=sys.stderr)
+    if len(meta["datasets"]) > 1:
+        print("one gns dataset per domain: "
+              + ", ".join(str(args.out / d) for d in meta["datasets"]), file=sys.stderr)
     return 0
 
 

@@ -65,10 +65,10 @@ def collect(sources: Iterable[str | Path], valid: int = 1, test: int = 0) -> lis
             raise DatasetError(f"{src}: no such file or directory")
     loose = sorted(set(loose), key=lambda p: (p.name, str(p)))
     if valid < 0 or test < 0:
-        raise DatasetError(f"--valid {valid} and --test {test} must be >= 0")
+        raise DatasetError(f"valid {valid} and test {test} must be >= 0")
     if loose and len(loose) <= valid + test:
         raise DatasetError(f"{len(loose)} runs cannot give {valid} valid and {test} test runs "
-                           "and still train on one: lower --valid / --test")
+                           "and still train on one: lower valid / test")
     cut = len(loose) - valid - test
     split_of += [("train" if i < cut else "valid" if i < cut + valid else "test", p)
                  for i, p in enumerate(loose)]

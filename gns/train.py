@@ -235,9 +235,9 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
     """
     log = sys.stderr if log is None else log  # the stream of the call, not of the import
     if resume and init:
-        raise ValueError("give --resume or --init, not both")
+        raise ValueError("resume and init are exclusive: give one")
     if deepen_to is not None and not init:
-        raise ValueError("--deepen needs --init (the checkpoint to deepen)")
+        raise ValueError("deepen_to needs init (the checkpoint to deepen)")
     if not 0 <= cfg.moving_fraction <= 1:
         raise ValueError(f"moving_fraction {cfg.moving_fraction} must be within [0, 1]")
     from minority.gns.rollout import rollout_error
@@ -258,7 +258,7 @@ def train(dataset: str | Path, out: str | Path, model_config: ModelConfig, cfg: 
         ckpt = {}  # fresh optimizer
         for key in ("particle_spacing_m", "frame_interval_s", "connectivity_radius_m"):
             if not math.isclose(float(stats[key]), float(meta[key]), rel_tol=1e-6):
-                raise ValueError(f"--init: the checkpoint's {key} {stats[key]} is not the "
+                raise ValueError(f"init: the checkpoint's {key} {stats[key]} is not the "
                                  f"dataset's {meta[key]}")
         stats = {**stats, **coarse_grain_stats(meta)}  # the data's
         if deepen_to is not None:

@@ -159,6 +159,8 @@ def _dataset_from_files(args: argparse.Namespace) -> dict:
                               frame_interval_s=args.frame_interval,
                               friction_deg=args.friction_deg,
                               connectivity_radius_m=args.radius)
+        if args.valid < 0 or args.test < 0:
+            raise ValueError(f"--valid {args.valid} and --test {args.test} must be >= 0")
         collect(args.from_runs, args.valid, args.test)  # the splits, before any file is read
         return build_from_runs(args.from_runs, args.out, stride=args.stride, valid=args.valid,
                                test=args.test, connectivity_radius_m=args.radius,
@@ -277,6 +279,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     if (status := missing("oracle train", args.dataset, args.resume, args.init)) is not None:
         return status
+    if args.resume and args.init:
+        return _fail("train", "give --resume or --init, not both", BAD_INPUT)
+    if args.deepen is not None and not args.init:
+        return _fail("train", "--deepen needs --init (the checkpoint to deepen)", BAD_INPUT)
     if args.threads:
         torch.set_num_threads(args.threads)
     mc = ModelConfig(latent=args.latent, mlp_layers=args.mlp_layers,

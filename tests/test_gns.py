@@ -506,7 +506,7 @@ def test_train_init_deepen(dataset, tmp_path):
     model, ckpt = load_checkpoint(deep)
     assert ckpt["model_config"]["message_passing"] == 3 and len(model.processor) == 3
     assert ckpt["history"][0]["deepened_from"] == 1
-    with pytest.raises(ValueError, match="needs --init"):
+    with pytest.raises(ValueError, match="deepen_to needs init"):
         train(path, deep, ModelConfig(), tc, resume=base, deepen_to=3, device="cpu")
 
 
@@ -527,8 +527,22 @@ def test_init_fine_tunes_from_weights_with_a_fresh_schedule(dataset, tmp_path):
     changed = [not torch.equal(ckpt["state_dict"][k], start["state_dict"][k])
                for k in start["state_dict"]]
     assert any(changed)
-    with pytest.raises(ValueError, match="not both"):
+    with pytest.raises(ValueError, match="resume and init are exclusive"):
         train(path, tuned, ModelConfig(), tc, resume=base, init=base, device="cpu")
+
+
+def test_train_options_that_cannot_go_together_are_named_as_flags(dataset, tmp_path, capsys):
+    """The library names its arguments (resume, init, deepen_to); the command its flags."""
+    from minority.cli import main
+
+    path, _, _ = dataset
+    base = tmp_path / "base.pt"
+    base.write_bytes(b"not read: refused before")
+    argv = ["oracle", "train", str(path), "--out", str(tmp_path / "x.pt")]
+    assert main([*argv, "--resume", str(base), "--init", str(base)]) == 2
+    assert "give --resume or --init, not both" in capsys.readouterr().err
+    assert main([*argv, "--resume", str(base), "--deepen", "3"]) == 2
+    assert "--deepen needs --init" in capsys.readouterr().err
 
 
 def test_coarse_grain_averages_the_groups_of_each_coarse_cube():

@@ -738,7 +738,7 @@ def _scene_of(name: str):
 
     import numpy as np
 
-    from minority.follow import Scene
+    from minority.gns.follow import Scene
     from minority.sim.scene import SceneError, scene_path
 
     try:
@@ -755,7 +755,7 @@ def _scene_of(name: str):
 def _cmd_follow(args: argparse.Namespace) -> int:
     import threading
 
-    from minority.follow import Follower, FollowOptions
+    from minority.gns.follow import Follower, FollowOptions
     from minority.protocol.session import Role, open_session, options_from_args
 
     if args.ranks < 0 or args.max_updates < 0 or args.snapshot_lead < 0:

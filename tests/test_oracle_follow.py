@@ -1,4 +1,4 @@
-"""The closed-loop oracle (minority.follow, `minority oracle follow`): the spec's optional
+"""The closed-loop oracle (minority.gns.follow, `minority oracle follow`): the spec's optional
 snapshots, the departure detector on synthetic Stats, the coarse-graining of snapshots, the
 timeline shift, and one loopback run (a real server and rank) whose early onset makes the
 follower ask for snapshots, receive them through the ordinary chunk path and put a
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from test_loopback import wait_until
 
-from minority.follow import (
+from minority.gns.dataset import coarse_grain
+from minority.gns.follow import (
     Detector,
     Follower,
     FollowOptions,
@@ -22,7 +23,6 @@ from minority.follow import (
     observed_events,
     shifted,
 )
-from minority.gns.dataset import coarse_grain
 from minority.insitu import connect
 from minority.protocol import Spec
 from minority.protocol.errors import SpecError
@@ -227,7 +227,7 @@ def test_the_budget_is_the_first_specs_and_a_reserve_is_kept_for_later_updates()
 
 
 def test_a_segment_plans_no_window_before_its_adoption():
-    from minority.follow import _Segment
+    from minority.gns.follow import _Segment
     from minority.gns.oracle import OracleOptions
 
     rng = np.random.default_rng(0)
@@ -392,7 +392,7 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames, slo
     spacing): rolled to rest, planned from plan()'s time within its frames (none when under
     2 a view are left), a spec that encodes (its provenance plain JSON)."""
     from minority.demo import CHECKPOINT
-    from minority.follow import reforecast
+    from minority.gns.follow import reforecast
     from minority.gns.train import load_checkpoint
 
     model, ckpt = load_checkpoint(CHECKPOINT)
@@ -435,7 +435,7 @@ def test_a_reforecast_with_the_shipped_model_plans_from_its_adoption(frames, slo
 
 
 def test_a_regions_departure_widens_the_regions_in_use_within_the_domain():
-    from minority.follow import widened
+    from minority.gns.follow import widened
 
     s = Spec.from_dict({**spec().to_dict(), "regions": [
         {"name": "a", "lo_m": [0.2, 0.2, 0.0], "hi_m": [0.4, 0.6, 0.2]}]})
@@ -447,7 +447,7 @@ def test_a_regions_departure_widens_the_regions_in_use_within_the_domain():
 
 
 def test_without_future_ends_every_window_at_the_adoption():
-    from minority.follow import without_future
+    from minority.gns.follow import without_future
 
     d = without_future(spec(snapshots=[0.3]), 0.25)
     assert d["views"][0]["schedule"][0]["t_end_s"] == 0.25 and not d.get("snapshots")
@@ -466,7 +466,7 @@ def standing_spec() -> Spec:
 
 
 def test_a_standing_spec_cut_short_keeps_its_picture_of_the_end():
-    from minority.follow import without_future
+    from minority.gns.follow import without_future
 
     cut = Spec.from_dict(without_future(standing_spec(), 0.09))
     windows = [(w.t_start_s, w.t_end_s) for w in cut.views[0].schedule]
@@ -528,7 +528,7 @@ def rollout_of(speed_of_t, t0_s: float, end_s: float, n: int = 27) -> np.ndarray
 
 
 def test_a_run_speeding_up_past_a_rollout_at_rest_is_joined_to_its_own_trend():
-    from minority.follow import joined_events
+    from minority.gns.follow import joined_events
 
     flow = flow_of(creep_then_fail, 0.6)
     t0 = 0.6 - 5 * FRAME_S
@@ -564,7 +564,7 @@ def accelerating_creep(t: float) -> float:
 
 
 def test_the_trend_is_read_from_the_newest_stats_when_the_run_is_still_speeding_up():
-    from minority.follow import joined_events
+    from minority.gns.follow import joined_events
 
     t0 = 0.6 - 5 * FRAME_S  # snapshots to 0.6 s; the forecast planned at 0.65 s
     rests = rollout_of(lambda t: accelerating_creep(t) if t <= 0.6 else 1e-4, t0, 0.75)
@@ -619,7 +619,7 @@ def uniform(speed_of_t):
 
 
 def test_a_late_event_while_the_run_is_slow_holds_the_frames_for_the_reforecast():
-    from minority.follow import Departure
+    from minority.gns.follow import Departure
 
     late_peak = Departure("late", "peak_motion", 0.45, 0.15, "no peak_motion yet")
     f = follower_at(settle_then_creep, 0.45)  # speeding up again, slow
@@ -669,7 +669,7 @@ def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land(early):
     """A late event seen between the rollout's chunks says the shift's guess was wrong,
     which the forecast in flight replaces; an event early, seen once the peak is known,
     that happened before its snapshots is in the Stats it joins: it is not abandoned."""
-    from minority.follow import Departure
+    from minority.gns.follow import Departure
 
     stats = {"frame_interval_s": FRAME_S, "particle_spacing_m": 0.02}
 
@@ -703,7 +703,7 @@ def test_a_late_event_while_the_gns_rolls_leaves_the_forecast_to_land(early):
 def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
     """A rollout at rest joined to a run speeding up: the frames follow the joined speed
     scale (speed^4), most of them at the end, not evenly as the resting rollout would."""
-    from minority.follow import _Segment
+    from minority.gns.follow import _Segment
     from minority.gns.oracle import OracleOptions
 
     x0 = lattice(4, 0.05)
@@ -720,7 +720,7 @@ def test_a_segment_spends_its_frames_where_the_joined_series_is_fast():
 
 def test_a_rollout_the_trend_replaces_stops_after_its_first_chunk():
     from minority.demo import CHECKPOINT
-    from minority.follow import roll_to_rest
+    from minority.gns.follow import roll_to_rest
     from minority.gns.train import load_checkpoint
 
     model, ckpt = load_checkpoint(CHECKPOINT)

@@ -14,8 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from minority.follow_detect import REST_FRACTION, Departure, LiveFlow, observed_events
 from minority.gns.events import FAST_FRACTION, events_from_series, fast_windows, speeds
+from minority.gns.follow_detect import REST_FRACTION, Departure, LiveFlow, observed_events
 from minority.gns.oracle import VIEWS, Oracle, OracleOptions
 from minority.protocol.flow import SPEED_QUANTILE
 from minority.protocol.spec import Spec

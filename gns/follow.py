@@ -2,8 +2,8 @@
 the run leaves what its spec predicted it re-forecasts from the run's own state and puts an
 updated spec on minority/{run}/spec, which the server and the ranks adopt without stopping.
 
-Three modules: minority.follow_detect (departures: `LiveFlow`, the ranks' Stats summed per
-step, and `Detector`), minority.follow_forecast (the updates' specs and the re-forecast) and
+Three modules: minority.gns.follow_detect (departures: `LiveFlow`, the ranks' Stats summed per
+step, and `Detector`), minority.gns.follow_forecast (the updates' specs and the re-forecast) and
 this one (`Follower`, the zenoh peer's loop).
 
 An update is two spec puts, each logged with its reason and cost (provenance: reason, kind,
@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from minority.follow_detect import (  # noqa: F401 - re-exported: minority.follow's names
+from minority.gns.events import FAST_FRACTION
+from minority.gns.follow_detect import (  # noqa: F401 - re-exported: minority.gns.follow's names
     PEAK_FALL,
     REGIONS_TARGET,
     REST_FRACTION,
@@ -35,7 +36,7 @@ from minority.follow_detect import (  # noqa: F401 - re-exported: minority.follo
     observed_events,
     slow_after_peak,
 )
-from minority.follow_forecast import (  # noqa: F401 - re-exported
+from minority.gns.follow_forecast import (  # noqa: F401 - re-exported
     CALIBRATION,
     WIDEN,
     Scene,
@@ -52,7 +53,6 @@ from minority.follow_forecast import (  # noqa: F401 - re-exported
     widened,
     without_future,
 )
-from minority.gns.events import FAST_FRACTION
 from minority.protocol.spec import Spec
 
 RESERVE_SHARE = 0.25  # of the frames left, kept for later updates while re-forecasts remain

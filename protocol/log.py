@@ -73,16 +73,19 @@ _CHUNK_INDEX_BYTES = 128
 _PER_CHANNEL_BYTES = 16
 
 
+def numbered_log_path(path: Path, k: int) -> Path:
+    """The k-th name of a log: `path`, then `{stem}.{k}{suffix}` (k = 1, 2, ...)."""
+    return path if k == 0 else path.with_name(f"{path.stem}.{k}{path.suffix}")
+
+
 def free_log_path(path: str | Path) -> Path:
-    """`path` if no file is there, else the first free `{stem}.{k}{suffix}` (k = 1, 2, ...):
-    a log is never overwritten."""
+    """`path` if no file is there, else the first free numbered_log_path: a log is never
+    overwritten."""
     path = Path(path)
     k = 0
-    while True:
-        candidate = path if k == 0 else path.with_name(f"{path.stem}.{k}{path.suffix}")
-        if not candidate.exists():
-            return candidate
+    while numbered_log_path(path, k).exists():
         k += 1
+    return numbered_log_path(path, k)
 
 
 class LogWriter:

@@ -209,7 +209,9 @@ class RenderServer:
                               time.monotonic_ns()))
 
     # --- runs -----------------------------------------------------------------------
-    def _open_instance(self) -> RunInstance:
+    def _open_instance(self, inbox_dropped: int = 0) -> RunInstance:
+        """The next run, its frame folder and log claimed; `inbox_dropped`: the inbox's drop
+        count so far (the run counts its own)."""
         o = self.options
         try:
             frames_dir = claim_frames_dir(o.out_dir, self.run)
@@ -236,7 +238,7 @@ class RenderServer:
             self._seq, name, frames_dir, writer,
             StepAssembler(o.timeout_s, o.max_pending, o.max_pending_bytes))
         inst.log_error = log_error
-        inst.inbox_dropped_before = self._inbox.dropped if hasattr(self, "_inbox") else 0
+        inst.inbox_dropped_before = inbox_dropped
         if self._mpi is not None:  # the other ranks log their chunks next to this log
             self._mpi.open_instance(writer.path if writer is not None else None)
         if self._log is not None:
@@ -256,7 +258,7 @@ class RenderServer:
         while not inst.finished.wait(RECEIVE_POLL_S):
             if self._stop.is_set():
                 return None
-        return self._open_instance()
+        return self._open_instance(self._inbox.dropped)
 
     def _current(self) -> RunInstance | None:
         """The open run for a rank's other messages (events, stats); None between runs."""

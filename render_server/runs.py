@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from minority.protocol.log import LogWriter
+from minority.protocol.log import LogWriter, numbered_log_path
 from minority.render_server.assemble import StepAssembler
 from minority.render_server.particles import ParticleCache
 
@@ -40,11 +40,6 @@ class ServerStats:
 def numbered_dir(out_dir: Path, run: str, k: int) -> Path:
     """The k-th name of a run's frame directory: `out_dir/run`, `out_dir/run.1`, ..."""
     return out_dir / (run if k == 0 else f"{run}.{k}")
-
-
-def numbered_log(record: Path, k: int) -> Path:
-    """The k-th name of a log: `record`, `{stem}.1{suffix}`, ..."""
-    return record if k == 0 else record.with_name(f"{record.stem}.{k}{record.suffix}")
 
 
 def unclaimed_frames_dir(out_dir: Path, run: str) -> Path:
@@ -128,7 +123,6 @@ class LogQueue:
     max_bytes: int = 1 << 30
     dropped: int = 0
     dropped_by: dict[Path, int] = field(default_factory=dict)
-    after_close: int = 0  # messages for a writer already closed: refused, never written
 
     def __post_init__(self) -> None:
         self._items: collections.deque[_Item] = collections.deque()
@@ -140,23 +134,22 @@ class LogQueue:
         self._thread.start()
 
     def put(self, writer: LogWriter | None, key: str, payload, log_ns: int,
-            message=None) -> bool:
-        """Queue a message for `writer`; False when it is not queued: no writer, a writer
-        already closed (`after_close`), or a full queue (`dropped`)."""
+            message=None) -> None:
+        """Queue a message for `writer`; none for a writer already closed (the message came
+        after its run ended: the caller publishes it only), and a full queue drops it,
+        counted in `dropped`."""
         if writer is None:
-            return False
+            return
         with self._cond:
             if writer.path in self._closed:
-                self.after_close += 1
-                return False
+                return
             if len(self._items) >= self.capacity or self._bytes + len(payload) > self.max_bytes:
                 self.dropped += 1
                 self.dropped_by[writer.path] = self.dropped_by.get(writer.path, 0) + 1
-                return False
+                return
             self._items.append(_Item(writer, key, bytes(payload), log_ns, message))
             self._bytes += len(payload)
             self._cond.notify()
-        return True
 
     def close_writer(self, writer: LogWriter | None) -> None:
         """Finish the writer's file once the messages queued before this call are written."""
@@ -204,7 +197,7 @@ def open_writer(record: Path, run: str, name: str) -> LogWriter:
     k = 0
     while True:
         try:
-            return LogWriter(numbered_log(record, k),
+            return LogWriter(numbered_log_path(record, k),
                              metadata={"run": run, "instance": name, "side": "server"})
         except FileExistsError:
             k += 1
